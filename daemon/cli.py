@@ -33,6 +33,26 @@ def _root(
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
 
 
+def _register_commands() -> None:
+    """Each ``daemon/cmd_*.py`` module adds its subcommands through ``register(app)``.
+
+    Discovery keeps this file free of a list every capability must edit; command modules import
+    their heavy dependencies inside the command functions so ``wristscan --help`` stays fast.
+    """
+    import importlib
+    import pkgutil
+
+    from wristscan import daemon
+
+    for info in sorted(pkgutil.iter_modules(daemon.__path__), key=lambda m: m.name):
+        if info.name.startswith("cmd_"):
+            module = importlib.import_module(f"wristscan.daemon.{info.name}")
+            module.register(app)
+
+
+_register_commands()
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the console script; returns the process exit code."""
     try:
