@@ -160,6 +160,7 @@ def _serve(config: TableSimConfig, ring_name: str | None, conn: Connection) -> N
                 regs[address - start_address : address - start_address + count] = values
                 if cmd == CMD_MOVE:
                     tgt = _join32(regs[REG["target"] : REG["target"] + 2], config.word_order)
+                    tgt = tgt - (1 << 32) if tgt >= 1 << 31 else tgt  # int32
                     speed = regs[REG["speed"]] * 0.1
                     motion.move_to(
                         t, tgt / cpr * 2 * math.pi, math.radians(speed) if speed > 0 else None
@@ -245,7 +246,11 @@ class SimulatedTable:
         if not parent.poll(timeout_s):
             self.stop()
             raise RuntimeError("simulated table did not start")
-        kind, endpoint = parent.recv()
+        try:
+            kind, endpoint = parent.recv()
+        except EOFError:
+            self.stop()
+            raise RuntimeError("simulated table exited during start-up (see its log)") from None
         assert kind == "ready"
         self.endpoint = endpoint
         return self
