@@ -61,3 +61,9 @@ def main(argv: list[str] | None = None) -> int:
         code = exc.code
         return code if isinstance(code, int) else (0 if code is None else 1)
     return 0
+
+
+if __name__ == "__main__":
+    import sys
+
+    sys.exit(main())
