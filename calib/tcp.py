@@ -79,7 +79,7 @@ _ROT_TOL = 1e-6
 _AXIS_NAMES = ("x", "y", "z")
 
 
-class DegeneratePoses(ValueError):  # noqa: N818 -- name fixed by the project contract
+class DegeneratePoses(ValueError):
     """The orientations do not constrain the TCP; the message says which pose to add."""
 
 
