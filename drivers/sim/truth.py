@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import secrets
+import threading
 from multiprocessing import resource_tracker, shared_memory
 
 import numpy as np
@@ -24,6 +25,7 @@ __all__ = ["TruthRing"]
 
 log = logging.getLogger(__name__)
 
+_ATTACH_LOCK = threading.Lock()
 _HEADER_BYTES = 64  # count (u64), width (u64), capacity (u64), padding
 
 
@@ -71,13 +73,16 @@ class TruthRing:
     @classmethod
     def attach(cls, name: str) -> TruthRing:
         """Open an existing ring by name (from any process)."""
-        shm = shared_memory.SharedMemory(name=name, create=False)
-        # Python < 3.13 registers attached segments with the resource tracker, which would unlink
-        # the creator's segment when this process exits.
-        try:
-            resource_tracker.unregister(shm._name, "shared_memory")  # type: ignore[attr-defined]
-        except Exception:  # the tracker is absent under some start methods
-            log.debug("resource tracker did not know %s", name)
+        # Python < 3.13 registers attached segments with the resource tracker, which unlinks
+        # them when the tracker's processes exit (or complains when the creator unlinks after a
+        # reader unregistered). Readers must not own the segment: skip registration.
+        with _ATTACH_LOCK:
+            register = resource_tracker.register
+            resource_tracker.register = lambda *args, **kwargs: None
+            try:
+                shm = shared_memory.SharedMemory(name=name, create=False)
+            finally:
+                resource_tracker.register = register
         return cls(shm, owner=False)
 
     def append(self, t_ns: int, values: ArrayLike) -> None:

@@ -1,0 +1,141 @@
+"""Dashboard server replies (TCP 29999) of the simulated UR controller.
+
+Text protocol: one command per line, one reply line each (UR's "Dashboard Server e-Series" manual
+gives the replies reproduced here). ur_rtde's ``DashboardClient`` compares several replies
+verbatim ("Starting program", "Stopped", "Protective stop releasing"), so they are kept exact.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+__all__ = ["WELCOME", "DashboardTarget", "reply"]
+
+WELCOME = "Connected: Universal Robots Dashboard Server"
+
+ROBOT_MODES = {
+    -1: "NO_CONTROLLER",
+    0: "DISCONNECTED",
+    1: "CONFIRM_SAFETY",
+    2: "BOOTING",
+    3: "POWER_OFF",
+    4: "POWER_ON",
+    5: "IDLE",
+    6: "BACKDRIVE",
+    7: "RUNNING",
+}
+SAFETY_MODES = {
+    1: "NORMAL",
+    2: "REDUCED",
+    3: "PROTECTIVE_STOP",
+    4: "RECOVERY",
+    5: "SAFEGUARD_STOP",
+    6: "SYSTEM_EMERGENCY_STOP",
+    7: "ROBOT_EMERGENCY_STOP",
+    8: "VIOLATION",
+    9: "FAULT",
+}
+RUNTIME_STATES = {0: "STOPPING", 1: "STOPPED", 2: "PLAYING", 3: "PAUSING", 4: "PAUSED"}
+
+
+class DashboardTarget(Protocol):
+    """What the dashboard needs from the controller."""
+
+    version: tuple[int, int, int, int]
+    serial_number: str
+    model_name: str
+    robot_mode: int
+    safety_mode: int
+    runtime_state: int
+    program_name: str
+    loaded_program: str | None
+
+    def power_on(self) -> None: ...
+    def power_off(self) -> None: ...
+    def brake_release(self) -> None: ...
+    def unlock_protective_stop(self) -> bool: ...
+    def play(self) -> bool: ...
+    def pause(self) -> bool: ...
+    def stop_program(self) -> None: ...
+
+
+def reply(target: DashboardTarget, line: str) -> tuple[str, bool]:
+    """Reply to one command line; the flag asks to close the connection after replying."""
+    cmd = line.strip()
+    low = cmd.lower()
+    major, minor, bugfix, build = target.version
+    if low == "polyscopeversion":
+        return f"URSoftware {major}.{minor}.{bugfix}.{build} (Jan 01 2024)", False
+    if low == "version":
+        return f"{major}.{minor}.{bugfix}.{build}", False
+    if low == "get serial number":
+        return target.serial_number, False
+    if low == "get robot model":
+        # The dashboard names the arm family without the e-Series suffix.
+        return target.model_name.rstrip("e"), False
+    if low == "is in remote control":
+        return "true", False
+    if low == "robotmode":
+        return f"Robotmode: {ROBOT_MODES.get(target.robot_mode, 'UNKNOWN')}", False
+    if low == "safetystatus":
+        return f"Safetystatus: {SAFETY_MODES.get(target.safety_mode, 'FAULT')}", False
+    if low == "safetymode":
+        return f"Safetymode: {SAFETY_MODES.get(target.safety_mode, 'FAULT')}", False
+    if low == "programstate":
+        state = RUNTIME_STATES.get(target.runtime_state, "STOPPED")
+        return f"{state} {target.program_name or '<unnamed>'}", False
+    if low == "running":
+        return f"Program running: {'true' if target.runtime_state == 2 else 'false'}", False
+    if low == "unlock protective stop":
+        if target.unlock_protective_stop():
+            return "Protective stop releasing", False
+        return (
+            "Cannot unlock protective stop until 5s after occurrence. Always inspect cause of "
+            "protective stop before unlocking",
+            False,
+        )
+    if low == "close safety popup":
+        return "closing safety popup", False
+    if low == "close popup":
+        return "closing popup", False
+    if low.startswith("popup "):
+        return "showing popup", False
+    if low == "power on":
+        target.power_on()
+        return "Powering on", False
+    if low == "power off":
+        target.power_off()
+        return "Powering off", False
+    if low == "brake release":
+        target.brake_release()
+        return "Brake releasing", False
+    if low.startswith("load "):
+        name = cmd[5:].strip()
+        target.loaded_program = name
+        return f"Loading program: {name}", False
+    if low == "get loaded program":
+        if target.loaded_program:
+            return f"Loaded program: {target.loaded_program}", False
+        return "No program loaded", False
+    if low == "play":
+        return ("Starting program", False) if target.play() else ("Failed to execute: play", False)
+    if low == "pause":
+        return ("Pausing program", False) if target.pause() else ("Failed to execute: pause", False)
+    if low == "stop":
+        target.stop_program()
+        return "Stopped", False
+    if low == "isprogramsaved":
+        return f"true {target.program_name or '<unnamed>'}", False
+    if low.startswith("addtolog "):
+        return "Added log message", False
+    if low == "get operational mode":
+        return "NONE", False
+    if low == "clear operational mode":
+        return "No longer controlling the operational mode. ", False
+    if low == "restart safety":
+        return "Restarting safety", False
+    if low == "shutdown":
+        return "Shutting down", True
+    if low == "quit":
+        return "Disconnected", True
+    return f"could not understand: '{cmd}'", False
