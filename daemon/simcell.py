@@ -1,0 +1,118 @@
+"""Build the simulated cell described by a configuration's ``[sim]`` section.
+
+The simulated sensor sends where the configured sensor driver listens (UDP) or listens where the
+driver connects (TCP), so ``wristscan run`` with the same file talks to it unchanged.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+from wristscan.drivers.sim.cell import CellSpec, SimulatedCell
+from wristscan.drivers.sim.scene import demo_scene
+from wristscan.drivers.sim.sensors import SensorSimConfig
+from wristscan.drivers.sim.table import TableSimConfig
+from wristscan.drivers.sim.ur_controller import ControllerConfig
+
+from .config import Config, SimConfig
+
+__all__ = ["cell_spec", "start_cell"]
+
+
+def _sensor_endpoint(cfg: Config) -> dict[str, Any]:
+    """Where the simulated sensor must send to / listen on to meet the configured driver."""
+    opts = cfg.sensor.options
+    driver = cfg.sensor.driver
+    if driver in ("lpf1-udp", "rf627-udp"):
+        host = getattr(opts, "bind_host", "127.0.0.1")
+        host = "127.0.0.1" if host in ("0.0.0.0", "", None) else host
+        return {"target": (host, int(opts.port))}  # type: ignore[union-attr]
+    if driver == "lpf1-tcp":
+        return {"host": opts.host, "port": int(opts.port)}  # type: ignore[union-attr]
+    url = str(getattr(opts, "url", ""))
+    if url.startswith("socket://"):
+        host, _, port = url.removeprefix("socket://").partition(":")
+        return {"host": host, "port": int(port)}
+    return {}
+
+
+def cell_spec(cfg: Config, **sensor_overrides: Any) -> CellSpec:
+    """The :class:`CellSpec` for ``cfg.sim`` (an absent ``[sim]`` means the defaults)."""
+    sim = cfg.sim or SimConfig()
+    c = sim.controller
+    controller = ControllerConfig(
+        host=c.host,
+        model=c.model,
+        version=(c.version[0], c.version[1], c.version[2], c.version[3]),
+        serial_number=c.serial_number,
+        repeatability_m=c.repeatability_m,
+    )
+    if c.q0_rad is not None:
+        controller = dataclasses.replace(controller, initial_q=tuple(c.q0_rad))
+    s = sim.sensor
+    sensor_kwargs: dict[str, Any] = {
+        "sensor_id": s.sensor_id,
+        "rate_hz": s.rate_hz,
+        "n_points": s.n_points,
+        "half_width_m": s.fov_lateral_m / 2,
+        "z_min_m": s.depth_min_m,
+        "z_max_m": s.depth_max_m,
+        "noise_std_m": s.noise_m,
+        "dropout_prob": s.dropout_prob,
+        "outlier_prob": s.outlier_prob,
+        "latency_s": s.latency_s,
+        "clock_offset_ns": round(s.clock_offset_s * 1e9),
+        "clock_drift_ppm": s.clock_drift_ppm,
+        "clock_jitter_ns": s.clock_jitter_s * 1e9,
+        "sensor2flange": tuple(sim.truth.sensor2flange_pose),
+        "robot_model": c.model,
+        "encoder": "table" if s.encoder else "none",
+        "intensity": s.intensity,
+        "seed": s.seed,
+    }
+    sensor_kwargs.update(_sensor_endpoint(cfg) if cfg.sensor.driver != "plugin" else {})
+    sensor_kwargs.update(sensor_overrides)
+    sensor = SensorSimConfig.for_kind(s.kind, **sensor_kwargs)
+    t = sim.table
+    table = (
+        TableSimConfig(
+            host=t.host,
+            port=t.port,
+            transport=t.transport,
+            device_id=t.device_id,
+            counts_per_rev=t.counts_per_rev,
+            word_order=t.word_order,
+            max_speed_deg_s=t.max_speed_deg_s,
+            accel_deg_s2=t.accel_deg_s2,
+            initial_angle_rad=t.initial_angle_rad,
+        )
+        if t.enabled
+        else None
+    )
+    scene = demo_scene(
+        ball_radius_m=sim.scene.ball_radius_m,
+        ball_centre=sim.scene.ball_centre_m,
+        table_zero2base=sim.truth.table_zero2base(),
+        with_part=sim.scene.with_part,
+    )
+    return CellSpec(controller=controller, sensor=sensor, table=table, scene=scene)
+
+
+def start_cell(
+    cfg: Config,
+    controller_host: str | None = None,
+    table_port: int | None = None,
+    **sensor_overrides: Any,
+) -> SimulatedCell:
+    """Start the cell of ``cfg``. ``controller_host`` and ``table_port`` replace the configured
+    addresses so that tests can run several cells side by side; ``sensor_overrides`` go to
+    :class:`SensorSimConfig` (for example ``target=(host, port)``)."""
+    spec = cell_spec(cfg, **sensor_overrides)
+    if controller_host is not None:
+        spec = dataclasses.replace(
+            spec, controller=dataclasses.replace(spec.controller, host=controller_host)
+        )
+    if table_port is not None and spec.table is not None:
+        spec = dataclasses.replace(spec, table=dataclasses.replace(spec.table, port=table_port))
+    return SimulatedCell(spec).start()

@@ -1,0 +1,128 @@
+"""The whole simulated cell: UR controller, rotary table and profile sensor, each in its own
+process, sharing the ground truth of motion through :class:`~.truth.TruthRing` segments.
+
+``SimulatedCell`` is a context manager: entering starts every process and waits until each
+listens; leaving (or :meth:`stop`) ends every process it started and removes the shared memory,
+also when start-up fails half way.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from wristscan.calib import se3
+
+from .scene import Scene, demo_scene
+from .sensors import SensorSimConfig, SimulatedSensor
+from .table import SimulatedTable, TableSimConfig
+from .truth import TruthRing
+from .ur_controller import ControllerConfig, SimulatedController
+
+__all__ = ["CellSpec", "SimulatedCell"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class CellSpec:
+    """What to start. ``table`` None: no rotary table (objects mounted on it stay at angle 0)."""
+
+    controller: ControllerConfig = field(default_factory=ControllerConfig)
+    sensor: SensorSimConfig = field(default_factory=SensorSimConfig)
+    table: TableSimConfig | None = field(default_factory=TableSimConfig)
+    scene: Scene | None = None
+    """None: :func:`~.scene.demo_scene`."""
+
+
+class SimulatedCell:
+    def __init__(self, spec: CellSpec | None = None) -> None:
+        self.spec = spec or CellSpec()
+        self.scene = self.spec.scene or demo_scene()
+        self.robot_ring: TruthRing | None = None
+        self.table_ring: TruthRing | None = None
+        self.controller: SimulatedController | None = None
+        self.table: SimulatedTable | None = None
+        self.sensor: SimulatedSensor | None = None
+
+    def start(self) -> SimulatedCell:
+        try:
+            self.robot_ring = TruthRing.create(width=6)
+            self.controller = SimulatedController(self.spec.controller, self.robot_ring.name)
+            self.controller.start()
+            if self.spec.table is not None:
+                self.table_ring = TruthRing.create(width=1)
+                self.table = SimulatedTable(self.spec.table, self.table_ring.name).start()
+            self.sensor = SimulatedSensor(
+                self.spec.sensor,
+                self.scene,
+                robot_ring=self.robot_ring.name,
+                table_ring=self.table_ring.name if self.table_ring else None,
+            ).start()
+        except BaseException:
+            self.stop()
+            raise
+        log.info("simulated cell started: %s", self.endpoints())
+        return self
+
+    def stop(self) -> None:
+        for part in (self.sensor, self.table, self.controller):
+            if part is not None:
+                part.stop()
+        self.sensor = self.table = self.controller = None
+        for ring in (self.robot_ring, self.table_ring):
+            if ring is not None:
+                ring.close()
+                ring.unlink()
+        self.robot_ring = self.table_ring = None
+
+    def __enter__(self) -> SimulatedCell:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # --- what tests and operators need to know ---------------------------------------------
+    def endpoints(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        if self.controller is not None:
+            out["robot"] = {
+                "host": self.controller.host,
+                "rtde": 30004,
+                "dashboard": 29999,
+                "script": 30003,
+                "frequency_hz": self.controller.frequency_hz,
+            }
+        if self.table is not None:
+            out["table"] = dict(self.table.endpoint)
+        if self.sensor is not None:
+            out["sensor"] = {"kind": self.spec.sensor.kind, **self.sensor.endpoint}
+        return out
+
+    def truth(self) -> dict[str, Any]:
+        """Ground truth in SI units: the values calibration should recover."""
+        s = self.spec.sensor
+        s2f = s.sensor2flange_matrix()
+        out: dict[str, Any] = {
+            "sensor2flange": s2f.tolist(),
+            "sensor2flange_ur_pose": se3.matrix_to_pose(s2f).tolist(),
+            "sensor_latency_s": s.latency_s if s.stamp_delay_s is None else s.stamp_delay_s,
+            "sensor_clock_offset_ns": s.clock_offset_ns,
+            "sensor_clock_drift_ppm": s.clock_drift_ppm,
+            "robot_repeatability_m": self.spec.controller.repeatability_m,
+        }
+        try:
+            ball = self.scene.find("ball")
+            out["ball_centre_base_m"] = se3.translation(self.scene.prim2base(ball)).tolist()
+            out["ball_radius_m"] = float(getattr(ball, "radius", np.nan))
+        except KeyError:
+            pass
+        if self.table is not None:
+            t2b = self.scene.table2base(0.0)
+            out["table_zero2base"] = np.asarray(t2b).tolist()
+            out["table_axis_direction"] = np.asarray(t2b)[:3, 2].tolist()
+            out["table_axis_point_m"] = np.asarray(t2b)[:3, 3].tolist()
+        return out
