@@ -43,7 +43,12 @@ class ModbusTable(RotaryTable):
         speed_register: int = 13,
         word_order: Literal["big", "little"] = "big",
         counts_per_rev: int = 3_600_000,
+        scale_rad_per_count: float | None = None,
         offset_rad: float = 0.0,
+        register_type: Literal["holding", "input"] = "input",
+        encoder_bits: Literal[16, 32] = 32,
+        parity: Literal["N", "E", "O"] = "N",
+        stopbits: Literal[1, 2] = 1,
         poll_hz: float = 100.0,
         timeout_s: float = 1.0,
     ) -> None:
@@ -67,7 +72,17 @@ class ModbusTable(RotaryTable):
         }
         self.word_order = word_order
         self.counts_per_rev = counts_per_rev
-        self.scale_rad_per_count = 2 * math.pi / counts_per_rev
+        # A signed scale (an encoder counting clockwise) overrides counts_per_rev.
+        self.scale_rad_per_count = (
+            scale_rad_per_count if scale_rad_per_count is not None else 2 * math.pi / counts_per_rev
+        )
+        if self.scale_rad_per_count == 0:
+            raise DriverInitError("scale_rad_per_count must not be zero")
+        if register_type not in ("holding", "input") or encoder_bits not in (16, 32):
+            raise DriverInitError("register_type must be holding/input, encoder_bits 16 or 32")
+        self.register_type = register_type
+        self.encoder_bits = encoder_bits
+        self.parity, self.stopbits = parity, stopbits
         self.offset_rad = offset_rad
         self.period_s = 1.0 / poll_hz
         self.timeout_s = timeout_s
@@ -82,7 +97,12 @@ class ModbusTable(RotaryTable):
                 self.host, port=self.port, timeout=self.timeout_s, retries=0, reconnect_delay=0
             )
         return ModbusSerialClient(
-            self.serial_port, baudrate=self.baudrate, timeout=self.timeout_s, retries=0
+            self.serial_port,
+            baudrate=self.baudrate,
+            parity=self.parity,
+            stopbits=self.stopbits,
+            timeout=self.timeout_s,
+            retries=0,
         )
 
     def _where(self) -> str:
@@ -138,11 +158,16 @@ class ModbusTable(RotaryTable):
         return [hi, lo] if self.word_order == "big" else [lo, hi]
 
     def _read_count(self) -> tuple[int, int]:
-        rr = self._call("read_input_registers", self.regs["encoder"], count=2)
-        return self._join(list(rr.registers)), time.monotonic_ns()
+        fn = "read_input_registers" if self.register_type == "input" else "read_holding_registers"
+        words = self.encoder_bits // 16
+        rr = self._call(fn, self.regs["encoder"], count=words)
+        regs = list(rr.registers)
+        count = regs[0] if words == 1 else self._join(regs)
+        return count, time.monotonic_ns()
 
     def _count_to_angle(self, count: int) -> float:
-        signed = count - (1 << 32) if count >= 1 << 31 else count
+        half = 1 << (self.encoder_bits - 1)
+        signed = count - (half << 1) if count >= half else count
         return float(signed) * self.scale_rad_per_count + self.offset_rad
 
     # --- RotaryTable ------------------------------------------------------------------------

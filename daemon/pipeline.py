@@ -1,0 +1,329 @@
+"""The acquisition pipeline: sensor driver -> synchroniser -> alignment -> zenoh, in batches.
+
+Threads:
+
+* one reader per device (sensor, robot, table) that blocks on the driver's ``read`` and puts
+  records into a bounded queue (a full queue drops the record and counts it by reason);
+* one worker that, every ``batch_s``, drains the queues into the :class:`Pairer`, aligns the
+  paired batches with the calibration in force (vectorised, Eq. 1) and publishes WSC1 batches.
+
+Counters always add up: ``received = published + dropped (by reason) + pending``. Device errors
+never kill the pipeline (drivers reconnect by themselves); an unexpected exception in a thread
+marks the pipeline failed, which the service turns into a non-zero exit (systemd restarts it).
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Generic, TypeVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from wristscan.calib import align
+from wristscan.drivers.base import Device, DriverError
+from wristscan.drivers.records import Profile, RobotState, TableState
+
+from .pairing import PairedBatch, Pairer
+
+__all__ = ["AlignmentSetup", "Pipeline", "PipelineSettings"]
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class AlignmentSetup:
+    """The calibration in force, as the worker uses it (swapped atomically as one object)."""
+
+    sensor2flange: NDArray[np.float64]
+    frame: str = "base"
+    base2table: NDArray[np.float64] | None = None
+    encoder_offset_rad: float = 0.0
+    calibrated: bool = True
+    description: dict[str, Any] | None = None
+
+
+@dataclass(frozen=True)
+class PipelineSettings:
+    batch_s: float = 0.010
+    profile_queue: int = 4096
+    state_queue: int = 65536
+    status_period_s: float = 1.0
+    publish_intensity: bool = False
+    publish_profile_index: bool = False
+
+
+class _Reader(Generic[T]):
+    """A thread that moves records from a driver into a bounded queue."""
+
+    def __init__(
+        self,
+        name: str,
+        device: Device[T],
+        sink: queue.Queue[T],
+        on_drop: Callable[[], None],
+        on_fail: Callable[[BaseException], None],
+    ) -> None:
+        self.device = device
+        self.sink = sink
+        self._on_drop = on_drop
+        self._on_fail = on_fail
+        self._stop = threading.Event()
+        self.errors = 0
+        self.thread = threading.Thread(target=self._run, name=f"reader-{name}", daemon=True)
+
+    def start(self) -> None:
+        self.thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def join(self, timeout: float) -> None:
+        self.thread.join(timeout)
+
+    def _run(self) -> None:
+        try:
+            while not self._stop.is_set():
+                try:
+                    rec = self.device.read(timeout=0.05)
+                except DriverError as exc:
+                    # The driver reconnects by itself; back off a little and keep going.
+                    self.errors += 1
+                    log.warning("%s: %s", self.device.kind, exc)
+                    self._stop.wait(0.1)
+                    continue
+                if rec is None:
+                    continue
+                try:
+                    self.sink.put_nowait(rec)
+                except queue.Full:
+                    self._on_drop()
+        except BaseException as exc:
+            log.exception("%s reader failed", self.device.kind)
+            self._on_fail(exc)
+
+
+class Pipeline:
+    """Wire devices, the pairer and the publisher together; start/stop, counters, health."""
+
+    def __init__(
+        self,
+        sensor: Device[Profile],
+        robot: Device[RobotState],
+        pairer: Pairer,
+        setup: AlignmentSetup,
+        publish: Callable[..., int],
+        table: Device[TableState] | None = None,
+        settings: PipelineSettings | None = None,
+        publish_status: Callable[[dict[str, Any]], None] | None = None,
+    ) -> None:
+        self.settings = settings or PipelineSettings()
+        self.sensor, self.robot, self.table = sensor, robot, table
+        self.pairer = pairer
+        self._setup = setup
+        self._publish = publish
+        self._publish_status = publish_status
+        s = self.settings
+        self._profiles: queue.Queue[Profile] = queue.Queue(s.profile_queue)
+        self._robot_q: queue.Queue[RobotState] = queue.Queue(s.state_queue)
+        self._table_q: queue.Queue[TableState] = queue.Queue(s.state_queue)
+        self.dropped: Counter[str] = Counter()
+        self.published_profiles = 0
+        self.published_points = 0
+        self.published_batches = 0
+        self.robot_states_dropped = 0
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._failure: BaseException | None = None
+        self._last_progress_ns = time.monotonic_ns()
+        self._utc_offset_ns = time.time_ns() - time.monotonic_ns()
+        self._readers: list[_Reader[Any]] = [
+            _Reader("sensor", sensor, self._profiles, self._drop_profile, self._fail),
+            _Reader("robot", robot, self._robot_q, self._drop_state, self._fail),
+        ]
+        if table is not None:
+            self._readers.append(
+                _Reader("table", table, self._table_q, self._drop_state, self._fail)
+            )
+        self._worker = threading.Thread(target=self._work, name="pipeline-worker", daemon=True)
+        self._started = False
+        self.latency_ns: list[int] = []
+
+    # --- counters and health ----------------------------------------------------------------
+    def _drop_profile(self) -> None:
+        with self._lock:
+            self.dropped["queue_full"] += 1
+
+    def _drop_state(self) -> None:
+        with self._lock:
+            self.robot_states_dropped += 1
+
+    def _fail(self, exc: BaseException) -> None:
+        self._failure = exc
+        self._stop.set()
+
+    @property
+    def failure(self) -> BaseException | None:
+        return self._failure
+
+    def healthy(self, stall_s: float = 2.0) -> bool:
+        """False when the worker has not made progress for ``stall_s`` (the watchdog then
+        withholds its ping) or a thread failed."""
+        if self._failure is not None:
+            return False
+        return (time.monotonic_ns() - self._last_progress_ns) < stall_s * 1e9
+
+    def stats(self) -> dict[str, Any]:
+        """Counters (JSON-friendly). ``received == published + sum(dropped) + pending``."""
+        p = self.pairer.stats()
+        with self._lock:
+            dropped = dict(self.dropped)
+        for reason, n in dict(p["dropped"]).items():  # type: ignore[call-overload]
+            dropped[reason] = dropped.get(reason, 0) + int(n)
+        sensor_received = self.sensor.counters.received
+        pending = int(p["pending"]) + self._profiles.qsize()  # type: ignore[call-overload]
+        return {
+            "received": sensor_received,
+            "published": self.published_profiles,
+            "dropped": dropped,
+            "pending": pending,
+            "published_points": self.published_points,
+            "published_batches": self.published_batches,
+            "robot_states": self.robot.counters.received,
+            "robot_states_dropped": self.robot_states_dropped,
+            "sensor": self.sensor.health().counters.as_dict(),
+            "robot": self.robot.health().counters.as_dict(),
+            "table": None if self.table is None else self.table.health().counters.as_dict(),
+            "pairing": p,
+        }
+
+    def status(self) -> dict[str, Any]:
+        st = self.stats()
+        devices: dict[str, Device[Any]] = {"sensor": self.sensor, "robot": self.robot}
+        if self.table is not None:
+            devices["table"] = self.table
+        setup = self._setup
+        return {
+            "state": "failed" if self._failure else ("running" if self._started else "stopped"),
+            "healthy": self.healthy(),
+            "calibrated": setup.calibrated,
+            "frame": setup.frame,
+            "devices": {k: d.health().state.value for k, d in devices.items()},
+            "received": st["received"],
+            "published": st["published"],
+            "dropped": st["dropped"],
+            "pending": st["pending"],
+            "time_utc_ns": time.time_ns(),
+        }
+
+    # --- calibration --------------------------------------------------------------------------
+    def set_setup(self, setup: AlignmentSetup) -> None:
+        """Swap the calibration in force; the next batch uses it (one reference assignment)."""
+        self._setup = setup
+
+    @property
+    def setup(self) -> AlignmentSetup:
+        return self._setup
+
+    # --- life cycle -----------------------------------------------------------------------------
+    def start(self) -> None:
+        self._started = True
+        for r in self._readers:
+            r.start()
+        self._worker.start()
+
+    def stop(self, drain: bool = True, timeout_s: float = 5.0) -> None:
+        """Stop reading; with ``drain`` the worker publishes what it holds before ending.
+        Profiles that still lack robot states then are dropped and counted (``shutdown``)."""
+        if not self._started:
+            return
+        for r in self._readers:
+            r.stop()
+        for r in self._readers:
+            r.join(timeout_s)
+        self._drain_on_stop = drain
+        self._stop.set()
+        self._worker.join(timeout_s)
+        self._started = False
+
+    # --- worker ---------------------------------------------------------------------------------
+    def _drain(self) -> None:
+        pairer = self.pairer
+        while True:
+            try:
+                pairer.add_robot_state(self._robot_q.get_nowait())
+            except queue.Empty:
+                break
+        while True:
+            try:
+                pairer.add_table_state(self._table_q.get_nowait())
+            except queue.Empty:
+                break
+        while True:
+            try:
+                pairer.add_profile(self._profiles.get_nowait())
+            except queue.Empty:
+                break
+
+    def _emit(self, batch: PairedBatch) -> None:
+        setup = self._setup
+        valid = batch.valid
+        frame = setup.frame
+        xyz = align.align(
+            batch.y,
+            batch.z,
+            batch.profile_index,
+            batch.flange2base,
+            setup.sensor2flange,
+            base2table=setup.base2table if frame != "base" else None,
+            table_angle_rad=batch.table_angle if frame == "part" else None,
+            encoder_offset_rad=setup.encoder_offset_rad,
+            frame=frame,  # type: ignore[arg-type]
+            mask=valid,
+        )
+        s = self.settings
+        intensity = (
+            batch.intensity[valid] if s.publish_intensity and batch.intensity is not None else None
+        )
+        pidx = batch.profile_index[valid] if s.publish_profile_index else None
+        t_first = int(batch.exposure_ns.min()) + self._utc_offset_ns
+        t_last = int(batch.exposure_ns.max()) + self._utc_offset_ns
+        self._publish(xyz, t_first, t_last, batch.n_profiles, frame, intensity, pidx)
+        now = time.monotonic_ns()
+        self.latency_ns.append(now - int(batch.exposure_ns.min()))
+        if len(self.latency_ns) > 10000:
+            del self.latency_ns[:5000]
+        self.published_batches += 1
+        self.published_profiles += batch.n_profiles
+        self.published_points += int(xyz.shape[0])
+
+    def _work(self) -> None:
+        period = self.settings.batch_s
+        next_status = time.monotonic() + self.settings.status_period_s
+        try:
+            while True:
+                stopping = self._stop.wait(period)
+                self._drain()
+                batches = self.pairer.poll()
+                if stopping:
+                    if getattr(self, "_drain_on_stop", True):
+                        batches.extend(self.pairer.flush())
+                for b in batches:
+                    self._emit(b)
+                self._last_progress_ns = time.monotonic_ns()
+                if self._publish_status is not None and time.monotonic() >= next_status:
+                    next_status += self.settings.status_period_s
+                    self._publish_status(self.status())
+                if stopping:
+                    return
+        except BaseException as exc:
+            log.exception("pipeline worker failed")
+            self._failure = exc
