@@ -1,0 +1,700 @@
+"""LPF1: wristscan's own framed profile protocol (encoder and decoder).
+
+The normative specification is ``docs/lpf1.md``; this module follows it. In short: a 72-byte
+little-endian header, the payload (``x[N]`` unless uniform, ``z[N]``, ``intensity[N]`` if flagged)
+and a CRC-32 (``zlib.crc32``) of header + payload. One message per UDP datagram, split into
+fragments when larger than the datagram limit; on byte streams (TCP) a reader resynchronises on
+the magic and the length; on serial links every message is COBS-encoded and ends with a zero byte.
+
+Points are profile coordinates ``x`` (lateral, along the laser line) and ``z`` (depth), which are
+the sensor frame's Y and Z (DESIGN.md): a :class:`~wristscan.drivers.records.Profile` gets
+``y = x``. Decoders never return a partial or guessed profile: malformed input raises
+:class:`FrameError` (or a subclass).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import struct
+import zlib
+from collections import OrderedDict
+from collections.abc import Iterable
+from dataclasses import dataclass
+from enum import IntEnum, IntFlag
+from typing import Any
+
+import numpy as np
+from cobs import cobs
+from numpy.typing import ArrayLike, NDArray
+
+from .records import Profile
+
+__all__ = [
+    "HEADER",
+    "HEADER_LEN",
+    "MAGIC",
+    "MAX_PAYLOAD",
+    "VERSION",
+    "ChecksumError",
+    "Flags",
+    "FrameError",
+    "Header",
+    "Message",
+    "MsgType",
+    "PointFormat",
+    "ProfileEncoder",
+    "Reassembler",
+    "SerialDecoder",
+    "StreamDecoder",
+    "TruncatedError",
+    "cobs_frame",
+    "decode_profile",
+    "encode_control",
+    "encode_profile",
+    "iter_profiles",
+    "parse_message",
+]
+
+log = logging.getLogger(__name__)
+
+MAGIC = b"LPF1"
+VERSION = 1
+HEADER = struct.Struct("<4sBBBBIIQQqIB3xIIiiHHI")
+HEADER_LEN = HEADER.size  # 72
+CRC_LEN = 4
+MAX_PAYLOAD = 16 * 1024 * 1024
+"""Largest payload a reader accepts (bytes); bigger lengths are treated as corruption."""
+DEFAULT_MAX_MESSAGE = 65000
+"""Default UDP datagram limit (bytes): above it a frame is split into fragments."""
+
+
+class FrameError(ValueError):
+    """Input that is not a well-formed LPF1 message (or not a consistent frame)."""
+
+
+class TruncatedError(FrameError):
+    """Fewer bytes than the header announces."""
+
+
+class ChecksumError(FrameError):
+    """CRC-32 mismatch: the message was corrupted."""
+
+
+class MsgType(IntEnum):
+    PROFILE = 1
+    HEARTBEAT = 2
+    STATUS = 3
+    HELLO = 4
+
+
+class Flags(IntFlag):
+    INTENSITY = 0x01
+    EXPLICIT_X = 0x02
+    ENCODER_VALID = 0x04
+    LAST_FRAGMENT = 0x08
+
+
+class PointFormat(IntEnum):
+    I16 = 0
+    I32 = 1
+    F32 = 2
+
+
+_DTYPES: dict[PointFormat, np.dtype[Any]] = {
+    PointFormat.I16: np.dtype("<i2"),
+    PointFormat.I32: np.dtype("<i4"),
+    PointFormat.F32: np.dtype("<f4"),
+}
+_SENTINEL = {PointFormat.I16: -32768, PointFormat.I32: -(2**31)}
+"""Invalid-point marker in ``z`` for integer formats (f32 uses NaN)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Header:
+    """Decoded header fields (units: ns, nm, µm as in the names)."""
+
+    version: int
+    header_len: int
+    msg_type: int
+    flags: int
+    payload_len: int
+    sensor_id: int
+    frame_counter: int
+    timestamp_ns: int
+    encoder: int
+    point_count: int
+    point_format: int
+    x_scale_nm: int
+    z_scale_nm: int
+    x_offset_um: int
+    z_offset_um: int
+    frag_index: int
+    frag_count: int
+    frag_offset: int
+
+    def frame_payload_len(self) -> int:
+        """Bytes of the whole frame's payload (all fragments) implied by the point fields."""
+        if self.msg_type != MsgType.PROFILE:
+            return self.payload_len
+        size = _DTYPES[PointFormat(self.point_format)].itemsize
+        n = self.point_count
+        total = n * size
+        if self.flags & Flags.EXPLICIT_X:
+            total += n * size
+        if self.flags & Flags.INTENSITY:
+            total += n
+        return total
+
+
+@dataclass(frozen=True, slots=True)
+class Message:
+    header: Header
+    payload: bytes
+
+    @property
+    def is_fragment(self) -> bool:
+        return self.header.frag_count > 1
+
+    def json(self) -> dict[str, Any]:
+        """Payload of a HELLO or STATUS message (UTF-8 JSON object)."""
+        try:
+            value = json.loads(self.payload.decode("utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise FrameError(
+                f"LPF1 {MsgType(self.header.msg_type).name} payload is not JSON"
+            ) from exc
+        if not isinstance(value, dict):
+            raise FrameError("LPF1 control payload must be a JSON object")
+        return value
+
+
+# ----------------------------------------------------------------------------------------------
+# Parsing
+
+
+def parse_message(buf: bytes | bytearray | memoryview) -> Message:
+    """Validate one complete message (exactly ``header_len + payload_len + 4`` bytes)."""
+    data = bytes(buf)
+    if len(data) < HEADER_LEN + CRC_LEN:
+        raise TruncatedError(f"LPF1 message of {len(data)} bytes is shorter than a header")
+    f = HEADER.unpack_from(data)
+    if f[0] != MAGIC:
+        raise FrameError(f"bad LPF1 magic {f[0]!r}")
+    version, header_len, payload_len = f[1], f[2], f[5]
+    if version != VERSION:
+        raise FrameError(f"unsupported LPF1 version {version}")
+    if header_len < HEADER_LEN:
+        raise FrameError(f"LPF1 header_len {header_len} < {HEADER_LEN}")
+    if payload_len > MAX_PAYLOAD:
+        raise FrameError(f"LPF1 payload_len {payload_len} exceeds {MAX_PAYLOAD}")
+    total = header_len + payload_len + CRC_LEN
+    if len(data) < total:
+        raise TruncatedError(f"LPF1 message has {len(data)} of {total} bytes")
+    if len(data) > total:
+        raise FrameError(f"LPF1 message has {len(data) - total} trailing bytes")
+    (crc,) = struct.unpack_from("<I", data, total - CRC_LEN)
+    if zlib.crc32(memoryview(data)[: total - CRC_LEN]) != crc:
+        raise ChecksumError("LPF1 CRC-32 mismatch")
+    h = Header(version, *f[2:])
+    try:
+        MsgType(h.msg_type)
+        PointFormat(h.point_format)
+    except ValueError as exc:
+        raise FrameError(f"LPF1: {exc}") from exc
+    if h.frag_count < 1 or h.frag_index >= h.frag_count:
+        raise FrameError(f"LPF1 fragment {h.frag_index} of {h.frag_count}")
+    return Message(h, data[header_len : header_len + payload_len])
+
+
+def decode_profile(message: Message | bytes, host_time_ns: int = 0) -> Profile:
+    """A :class:`Profile` from one complete (unfragmented or reassembled) PROFILE message."""
+    msg = message if isinstance(message, Message) else parse_message(message)
+    h = msg.header
+    if h.msg_type != MsgType.PROFILE:
+        raise FrameError(f"LPF1 message type {MsgType(h.msg_type).name} carries no profile")
+    if h.frag_count != 1:
+        raise FrameError("LPF1 fragment: reassemble before decoding")
+    n = h.point_count
+    if n == 0:
+        raise FrameError("LPF1 profile without points")
+    if len(msg.payload) != h.frame_payload_len():
+        raise FrameError(
+            f"LPF1 payload of {len(msg.payload)} bytes, {h.frame_payload_len()} expected"
+        )
+    fmt = PointFormat(h.point_format)
+    dt = _DTYPES[fmt]
+    pos = 0
+    x_raw = None
+    if h.flags & Flags.EXPLICIT_X:
+        x_raw = np.frombuffer(msg.payload, dt, n, pos)
+        pos += n * dt.itemsize
+    z_raw = np.frombuffer(msg.payload, dt, n, pos)
+    pos += n * dt.itemsize
+    intensity = None
+    if h.flags & Flags.INTENSITY:
+        intensity = np.frombuffer(msg.payload, np.uint8, n, pos).copy()
+    if fmt == PointFormat.F32:
+        z = z_raw.astype(np.float64)
+        valid = np.isfinite(z)
+    else:
+        valid = z_raw != _SENTINEL[fmt]
+        # Cast to float before scaling: integer products would wrap.
+        z = z_raw.astype(np.float64) * (h.z_scale_nm * 1e-9) + h.z_offset_um * 1e-6
+    if x_raw is None:
+        x = np.arange(n, dtype=np.float64) * (h.x_scale_nm * 1e-9) + h.x_offset_um * 1e-6
+    elif fmt == PointFormat.F32:
+        x = x_raw.astype(np.float64)
+        valid &= np.isfinite(x)
+    else:
+        x_ok = x_raw != _SENTINEL[fmt]
+        x = x_raw.astype(np.float64) * (h.x_scale_nm * 1e-9) + h.x_offset_um * 1e-6
+        x[~x_ok] = np.nan
+        valid &= x_ok
+    z[~valid] = np.nan
+    return Profile(
+        sensor_id=h.sensor_id,
+        frame_counter=h.frame_counter,
+        sensor_time_ns=h.timestamp_ns,
+        host_time_ns=host_time_ns,
+        y=x,
+        z=z,
+        valid=valid,
+        intensity=intensity,
+        encoder=h.encoder if h.flags & Flags.ENCODER_VALID else None,
+    )
+
+
+class Reassembler:
+    """Collects the fragments of a frame; yields the complete message once all arrived.
+
+    Fragments may arrive in any order; at most ``max_pending`` incomplete frames are held (the
+    oldest is dropped and counted in ``dropped_frames``). Inconsistent fragments raise
+    :class:`FrameError` and discard the frame.
+    """
+
+    def __init__(self, max_pending: int = 8) -> None:
+        self.max_pending = max_pending
+        self._pending: OrderedDict[tuple[int, int], dict[int, Message]] = OrderedDict()
+        self.dropped_frames = 0
+
+    def push(self, msg: Message) -> Message | None:
+        h = msg.header
+        if h.frag_count == 1:
+            return msg
+        key = (h.sensor_id, h.frame_counter)
+        parts = self._pending.get(key)
+        if parts is None:
+            parts = self._pending[key] = {}
+            while len(self._pending) > self.max_pending:
+                self._pending.popitem(last=False)
+                self.dropped_frames += 1
+        first = next(iter(parts.values()), None)
+        if first is not None and not _same_frame(first.header, h):
+            del self._pending[key]
+            raise FrameError("LPF1 fragments of one frame disagree")
+        parts[h.frag_index] = msg
+        if len(parts) < h.frag_count:
+            return None
+        del self._pending[key]
+        ordered = [parts[i] for i in range(h.frag_count)]
+        offset = 0
+        for m in ordered:
+            if m.header.frag_offset != offset:
+                raise FrameError("LPF1 fragment offsets are not contiguous")
+            offset += len(m.payload)
+        if not ordered[-1].header.flags & Flags.LAST_FRAGMENT:
+            raise FrameError("LPF1 last fragment lacks its flag")
+        payload = b"".join(m.payload for m in ordered)
+        merged = Header(
+            **{
+                **{k: getattr(h, k) for k in Header.__slots__},
+                "payload_len": len(payload),
+                "frag_index": 0,
+                "frag_count": 1,
+                "frag_offset": 0,
+                "flags": h.flags | Flags.LAST_FRAGMENT,
+            }
+        )
+        if len(payload) != merged.frame_payload_len():
+            raise FrameError("LPF1 reassembled payload has the wrong size")
+        return Message(merged, payload)
+
+    def clear(self) -> None:
+        self._pending.clear()
+
+
+def _same_frame(a: Header, b: Header) -> bool:
+    skip = {"payload_len", "frag_index", "frag_offset", "flags"}
+    return all(getattr(a, k) == getattr(b, k) for k in Header.__slots__ if k not in skip) and (
+        a.flags & ~Flags.LAST_FRAGMENT
+    ) == (b.flags & ~Flags.LAST_FRAGMENT)
+
+
+class StreamDecoder:
+    """Splits a byte stream (TCP) into messages, resynchronising after garbage or corruption.
+
+    A candidate starts at the magic; it is accepted when its length fields are sane and its CRC
+    matches, otherwise the reader skips past that magic and searches again. ``skipped_bytes``
+    and ``bad_messages`` count what was discarded.
+    """
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+        self.skipped_bytes = 0
+        self.bad_messages = 0
+
+    def feed(self, data: bytes | bytearray | memoryview) -> list[Message]:
+        self._buf += data
+        out: list[Message] = []
+        buf = self._buf
+        pos = 0
+        while True:
+            start = buf.find(MAGIC, pos)
+            if start < 0:
+                # Keep a tail that may hold the start of a split magic.
+                keep = max(pos, len(buf) - (len(MAGIC) - 1))
+                self.skipped_bytes += keep - pos
+                pos = keep
+                break
+            self.skipped_bytes += start - pos
+            pos = start
+            if len(buf) - pos < HEADER_LEN:
+                break
+            header_len = buf[pos + 5]
+            (payload_len,) = struct.unpack_from("<I", buf, pos + 8)
+            if buf[pos + 4] != VERSION or header_len < HEADER_LEN or payload_len > MAX_PAYLOAD:
+                self.bad_messages += 1
+                pos += 1
+                continue
+            total = header_len + payload_len + CRC_LEN
+            if len(buf) - pos < total:
+                # A corrupted length could stall the stream for megabytes: if a complete,
+                # valid message starts further on, this candidate was not one.
+                if self._valid_message_after(buf, pos + 1):
+                    self.bad_messages += 1
+                    pos += 1
+                    continue
+                break
+            try:
+                out.append(parse_message(memoryview(buf)[pos : pos + total]))
+            except FrameError:
+                self.bad_messages += 1
+                pos += 1
+                continue
+            pos += total
+        del buf[:pos]
+        return out
+
+    @staticmethod
+    def _valid_message_after(buf: bytearray, start: int) -> bool:
+        nxt = buf.find(MAGIC, start)
+        while nxt >= 0 and len(buf) - nxt >= HEADER_LEN:
+            header_len = buf[nxt + 5]
+            (payload_len,) = struct.unpack_from("<I", buf, nxt + 8)
+            total = header_len + payload_len + CRC_LEN
+            if header_len >= HEADER_LEN and len(buf) - nxt >= total:
+                try:
+                    parse_message(memoryview(buf)[nxt : nxt + total])
+                    return True
+                except FrameError:
+                    pass
+            nxt = buf.find(MAGIC, nxt + 1)
+        return False
+
+
+class SerialDecoder:
+    """Splits a serial byte stream of COBS-encoded, zero-terminated messages."""
+
+    def __init__(self, max_frame: int = MAX_PAYLOAD) -> None:
+        self._buf = bytearray()
+        self.max_frame = max_frame
+        self.bad_messages = 0
+        self.skipped_bytes = 0
+
+    def feed(self, data: bytes | bytearray | memoryview) -> list[Message]:
+        self._buf += data
+        out: list[Message] = []
+        *frames, rest = bytes(self._buf).split(b"\x00")
+        self._buf = bytearray(rest)
+        if len(self._buf) > self.max_frame:  # no delimiter for too long: line garbage
+            self.skipped_bytes += len(self._buf)
+            self._buf.clear()
+        for enc in frames:
+            if not enc:
+                continue
+            try:
+                out.append(parse_message(cobs.decode(enc)))
+            except (cobs.DecodeError, FrameError):
+                self.bad_messages += 1
+                self.skipped_bytes += len(enc) + 1
+        return out
+
+
+def cobs_frame(message: bytes) -> bytes:
+    """One message framed for a serial link: COBS-encoded, then a zero delimiter."""
+    return bytes(cobs.encode(message)) + b"\x00"
+
+
+# ----------------------------------------------------------------------------------------------
+# Encoding
+
+
+def _pack(
+    msg_type: int,
+    flags: int,
+    payload: bytes | memoryview,
+    sensor_id: int,
+    frame_counter: int,
+    timestamp_ns: int,
+    encoder: int = 0,
+    point_count: int = 0,
+    point_format: int = 0,
+    scales: tuple[int, int, int, int] = (0, 0, 0, 0),
+    frag: tuple[int, int, int] = (0, 1, 0),
+) -> bytes:
+    head = HEADER.pack(
+        MAGIC,
+        VERSION,
+        HEADER_LEN,
+        msg_type,
+        flags,
+        len(payload),
+        sensor_id,
+        frame_counter,
+        timestamp_ns,
+        encoder,
+        point_count,
+        point_format,
+        *scales,
+        *frag,
+    )
+    crc = zlib.crc32(payload, zlib.crc32(head))
+    return b"".join((head, payload, struct.pack("<I", crc)))
+
+
+def encode_control(
+    msg_type: MsgType,
+    sensor_id: int,
+    frame_counter: int,
+    timestamp_ns: int,
+    info: dict[str, Any] | None = None,
+) -> bytes:
+    """A HEARTBEAT (empty payload), HELLO or STATUS (JSON object payload) message."""
+    if msg_type == MsgType.PROFILE:
+        raise ValueError("use ProfileEncoder for profiles")
+    payload = b"" if info is None else json.dumps(info, separators=(",", ":")).encode()
+    return _pack(
+        int(msg_type), Flags.LAST_FRAGMENT, payload, sensor_id, frame_counter, timestamp_ns
+    )
+
+
+class ProfileEncoder:
+    """Encodes batches of profiles with one vectorised quantisation step.
+
+    ``x_uniform=(x0_m, step_m)`` declares the lateral grid ``x_i = x0 + i * step`` (it is written
+    as ``x_offset_um``/``x_scale_nm`` and the x array is omitted); otherwise x is sent explicitly
+    with ``x_scale_nm``/``x_offset_um``. ``z_scale_nm``/``z_offset_um`` quantise z for the integer
+    formats (F32 sends metres). Points outside the representable range become invalid.
+    ``max_message_bytes`` splits frames into fragments (UDP).
+    """
+
+    def __init__(
+        self,
+        sensor_id: int,
+        point_format: PointFormat = PointFormat.I16,
+        *,
+        z_scale_nm: int = 2000,
+        z_offset_um: int = 100_000,
+        x_scale_nm: int = 1000,
+        x_offset_um: int = 0,
+        x_uniform: tuple[float, float] | None = None,
+        intensity: bool = False,
+        max_message_bytes: int | None = DEFAULT_MAX_MESSAGE,
+    ) -> None:
+        self.sensor_id = int(sensor_id)
+        self.point_format = PointFormat(point_format)
+        self.intensity = intensity
+        if self.point_format != PointFormat.F32 and (z_scale_nm <= 0 or x_scale_nm <= 0):
+            raise ValueError("scales must be positive")
+        self.z_scale_nm, self.z_offset_um = int(z_scale_nm), int(z_offset_um)
+        self.x_scale_nm, self.x_offset_um = int(x_scale_nm), int(x_offset_um)
+        self.explicit_x = x_uniform is None
+        if x_uniform is not None:
+            self.x_offset_um = round(x_uniform[0] * 1e6)
+            self.x_scale_nm = round(x_uniform[1] * 1e9)
+            if self.x_scale_nm <= 0:
+                raise ValueError("uniform x step must be at least 1 nm")
+        if max_message_bytes is not None and max_message_bytes < HEADER_LEN + CRC_LEN + 16:
+            raise ValueError("max_message_bytes too small")
+        self.max_message_bytes = max_message_bytes
+
+    def _quantise(self, v: NDArray[np.float64], valid: NDArray[np.bool_], scale_nm: int,
+                  offset_um: int) -> tuple[NDArray[Any], NDArray[np.bool_]]:  # fmt: skip
+        fmt = self.point_format
+        if fmt == PointFormat.F32:
+            out32 = np.where(valid, v, np.nan).astype("<f4")
+            return out32, valid & np.isfinite(out32)
+        info = np.iinfo(_DTYPES[fmt])
+        k = 1.0 / (scale_nm * 1e-9)
+        q = v * k
+        q -= offset_um * 1e-6 * k
+        np.rint(q, out=q)
+        with np.errstate(invalid="ignore"):  # NaN (no measurement) compares False: invalid
+            ok = valid & (q > info.min) & (q <= info.max)  # info.min is the sentinel
+        q[~ok] = info.min
+        return q.astype(_DTYPES[fmt]), ok
+
+    def encode(
+        self,
+        frame_counter: ArrayLike,
+        timestamp_ns: ArrayLike,
+        z: ArrayLike,
+        valid: ArrayLike,
+        x: ArrayLike | None = None,
+        intensity: ArrayLike | None = None,
+        encoder: ArrayLike | None = None,
+    ) -> list[list[bytes]]:
+        """Messages for ``P`` profiles: ``z``, ``valid`` (and explicit ``x``, ``intensity``)
+        ``(P, N)`` in metres; counters, timestamps (device ns) and encoder counts ``(P,)``.
+        Returns one list of messages (fragments) per profile."""
+        z2 = np.atleast_2d(np.asarray(z, dtype=np.float64))
+        v2 = np.atleast_2d(np.asarray(valid, dtype=bool))
+        n_prof, n = z2.shape
+        counters = np.broadcast_to(np.asarray(frame_counter, dtype=np.int64), (n_prof,))
+        stamps = np.broadcast_to(np.asarray(timestamp_ns, dtype=np.int64), (n_prof,))
+        zq, ok = self._quantise(z2, v2, self.z_scale_nm, self.z_offset_um)
+        flags = 0
+        blocks: list[NDArray[Any]] = []
+        if self.explicit_x:
+            if x is None:
+                raise ValueError("this encoder sends explicit x: pass x")
+            x2 = np.broadcast_to(np.asarray(x, dtype=np.float64), z2.shape)
+            # x is sent for invalid points too (their lateral position stays known).
+            xq, xok = self._quantise(x2, np.isfinite(x2), self.x_scale_nm, self.x_offset_um)
+            # A point whose x is unrepresentable is invalid as a whole.
+            zq = np.where(xok | ~ok, zq, _SENTINEL.get(self.point_format, np.nan)).astype(zq.dtype)
+            blocks.append(xq)
+            flags |= Flags.EXPLICIT_X
+        blocks.append(zq)
+        if self.intensity:
+            if intensity is None:
+                raise ValueError("this encoder sends intensity: pass intensity")
+            blocks.append(np.broadcast_to(np.asarray(intensity, dtype=np.uint8), z2.shape))
+            flags |= Flags.INTENSITY
+        payloads = np.concatenate([b.view(np.uint8).reshape(n_prof, -1) for b in blocks], axis=1)
+        enc = None
+        if encoder is not None:
+            enc = np.broadcast_to(np.asarray(encoder, dtype=np.int64), (n_prof,))
+            flags |= Flags.ENCODER_VALID
+        scales = (self.x_scale_nm, self.z_scale_nm, self.x_offset_um, self.z_offset_um)
+        if self.point_format == PointFormat.F32 and not self.explicit_x:
+            scales = (self.x_scale_nm, 0, self.x_offset_um, 0)
+        elif self.point_format == PointFormat.F32:
+            scales = (0, 0, 0, 0)
+        chunk = (
+            payloads.shape[1]
+            if self.max_message_bytes is None
+            else self.max_message_bytes - HEADER_LEN - CRC_LEN
+        )
+        # Per-profile work is plain ints and bytes: this loop runs up to 10 000 times a second.
+        total = payloads.shape[1]
+        count = max(1, -(-total // chunk))
+        flag_bits = int(flags)
+        last = int(Flags.LAST_FRAGMENT)
+        fmt = int(self.point_format)
+        counter_list = counters.tolist()
+        stamp_list = stamps.tolist()
+        enc_list = [0] * n_prof if enc is None else enc.tolist()
+        pack = HEADER.pack
+        crc32 = zlib.crc32
+        out: list[list[bytes]] = []
+        for p in range(n_prof):
+            row = payloads[p].tobytes()
+            msgs = []
+            for i in range(count):
+                piece = row[i * chunk : (i + 1) * chunk] if count > 1 else row
+                head = pack(
+                    MAGIC,
+                    VERSION,
+                    HEADER_LEN,
+                    MsgType.PROFILE,
+                    flag_bits | (last if i == count - 1 else 0),
+                    len(piece),
+                    self.sensor_id,
+                    counter_list[p],
+                    stamp_list[p],
+                    enc_list[p],
+                    n,
+                    fmt,
+                    *scales,
+                    i,
+                    count,
+                    i * chunk,
+                )
+                crc = crc32(piece, crc32(head))
+                msgs.append(b"".join((head, piece, crc.to_bytes(4, "little"))))
+            out.append(msgs)
+        return out
+
+
+def encode_profile(
+    profile: Profile,
+    point_format: PointFormat = PointFormat.I16,
+    *,
+    uniform_x: bool | None = None,
+    z_scale_nm: int = 2000,
+    z_offset_um: int = 100_000,
+    x_scale_nm: int = 1000,
+    x_offset_um: int = 0,
+    max_message_bytes: int | None = DEFAULT_MAX_MESSAGE,
+) -> list[bytes]:
+    """Messages (one, or several fragments) for one :class:`Profile`.
+
+    ``uniform_x=None`` sends x as a uniform grid when ``profile.y`` is one (to within half a nm
+    per point), explicitly otherwise.
+    """
+    y = np.asarray(profile.y, dtype=np.float64)
+    n = y.shape[0]
+    grid: tuple[float, float] | None = None
+    if uniform_x is not False and n >= 2 and np.all(np.isfinite(y)):
+        x0_um = round(y[0] * 1e6)
+        step_nm = round((y[-1] - y[0]) / (n - 1) * 1e9)
+        expect = x0_um * 1e-6 + np.arange(n) * step_nm * 1e-9
+        if step_nm > 0 and np.max(np.abs(expect - y)) <= 0.5e-9 * n + 0.5e-6:
+            grid = (x0_um * 1e-6, step_nm * 1e-9)
+    if uniform_x and grid is None:
+        raise ValueError("profile.y is not a uniform grid")
+    enc = ProfileEncoder(
+        profile.sensor_id,
+        point_format,
+        z_scale_nm=z_scale_nm,
+        z_offset_um=z_offset_um,
+        x_scale_nm=x_scale_nm,
+        x_offset_um=x_offset_um,
+        x_uniform=grid,
+        intensity=profile.intensity is not None,
+        max_message_bytes=max_message_bytes,
+    )
+    return enc.encode(
+        profile.frame_counter,
+        profile.sensor_time_ns,
+        profile.z[None],
+        profile.valid[None],
+        x=None if grid is not None else y[None],
+        intensity=None if profile.intensity is None else profile.intensity[None],
+        encoder=profile.encoder,
+    )[0]
+
+
+def iter_profiles(messages: Iterable[Message], reassembler: Reassembler,
+                  host_time_ns: int = 0) -> list[Profile]:  # fmt: skip
+    """Profiles completed by ``messages`` (control messages are skipped)."""
+    out = []
+    for m in messages:
+        if m.header.msg_type != MsgType.PROFILE:
+            continue
+        whole = reassembler.push(m)
+        if whole is not None:
+            out.append(decode_profile(whole, host_time_ns))
+    return out
