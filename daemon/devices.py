@@ -1,0 +1,131 @@
+"""Build the configured drivers and the pairer from a validated :class:`Config`."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Any
+
+from wristscan.calib import kinematics
+from wristscan.drivers import registry
+from wristscan.drivers.base import Device, DriverError
+from wristscan.drivers.records import Profile, RobotState, TableState
+
+from .clockmap import ClockConfig
+from .config import Config, PluginSensorConfig
+from .pairing import PairerConfig
+
+__all__ = ["Devices", "make_devices", "pairer_config"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Devices:
+    sensor: Device[Profile]
+    robot: Device[RobotState]
+    table: Device[TableState] | None
+
+    def all(self) -> list[Device[Any]]:
+        return [d for d in (self.sensor, self.robot, self.table) if d is not None]
+
+    def open(self) -> None:
+        """Open every device; on a failure close those already open and re-raise."""
+        opened: list[Device[Any]] = []
+        try:
+            for d in self.all():
+                d.open()
+                opened.append(d)
+        except BaseException:
+            for d in reversed(opened):
+                d.close()
+            raise
+
+    def close(self) -> None:
+        for d in reversed(self.all()):
+            try:
+                d.close()
+            except DriverError as exc:  # closing must go on for the others
+                log.warning("closing %s: %s", d.kind, exc)
+
+
+def _sensor_kwargs(cfg: Config) -> dict[str, Any]:
+    s = cfg.sensor
+    opts = s.options if isinstance(s, PluginSensorConfig) else s.options.model_dump()
+    return {"sensor_id": s.sensor_id, **opts}
+
+
+def make_devices(cfg: Config) -> Devices:
+    """Instantiate (not open) the drivers named in ``cfg``."""
+    # Constructors differ per driver; the config models name their keyword arguments.
+    sensor_cls: Any = registry.load("sensors", cfg.sensor.driver)
+    sensor = sensor_cls(**_sensor_kwargs(cfg))
+    r = cfg.robot
+    robot_cls: Any = registry.load("robots", r.driver)
+    robot = robot_cls(
+        host=r.host,
+        frequency_hz=r.frequency_hz,
+        motion_enabled=r.motion_enabled,
+        max_speed_m_s=r.max_speed_m_s,
+        max_accel_m_s2=r.max_accel_m_s2,
+        max_joint_speed_rad_s=r.max_joint_speed_rad_s,
+        max_joint_accel_rad_s2=r.max_joint_accel_rad_s2,
+        workspace_min_m=r.workspace_min_m,
+        workspace_max_m=r.workspace_max_m,
+        model=r.model,
+        read_kinematics=r.use_factory_kinematics,
+    )
+    table: Device[Any] | None = None
+    t = cfg.table
+    if t is not None and t.enabled:
+        table_cls: Any = registry.load("tables", t.driver)
+        if t.driver != "modbus":
+            table = table_cls(**t.options)
+        else:
+            table = table_cls(
+                transport=t.transport,
+                host=t.host or "127.0.0.1",
+                port=t.port,
+                serial_port=t.serial_port or "",
+                baudrate=t.baudrate,
+                parity=t.parity,
+                stopbits=t.stopbits,
+                device_id=t.device_id,
+                register_type=t.register_type,
+                encoder_register=t.encoder_register,
+                encoder_bits=t.encoder_bits,
+                word_order=t.word_order,
+                scale_rad_per_count=t.rad_per_count,
+                offset_rad=t.offset_rad,
+                status_register=t.status_register if t.status_register is not None else 2,
+                target_register=t.target_register if t.target_register is not None else 10,
+                command_register=t.command_register if t.command_register is not None else 12,
+                speed_register=t.speed_register if t.speed_register is not None else 13,
+                poll_hz=t.poll_hz,
+                timeout_s=t.timeout_s,
+            )
+    return Devices(sensor=sensor, robot=robot, table=table)
+
+
+def pairer_config(cfg: Config, model: str | kinematics.DHParams | None = None) -> PairerConfig:
+    """The synchroniser settings of ``cfg`` (``model``: calibrated kinematics when known)."""
+    sy = cfg.sync
+    window_ns = round(sy.clock_window_s * 1e9)
+    clock = ClockConfig(window_ns=window_ns, max_uncertainty_ns=sy.clock_max_uncertainty_s * 1e9)
+    return PairerConfig(
+        mode=sy.pairing,
+        robot_model=model or cfg.robot.model,
+        interpolation=sy.interpolation,
+        sensor_latency_ns=round(cfg.sensor.latency_s * 1e9),
+        robot_latency_ns=round(sy.robot_latency_s * 1e9),
+        table_latency_ns=round(sy.table_latency_s * 1e9),
+        sensor_time_modulus_ns=cfg.sensor.time_modulus_ns,
+        encoder_modulus=None if sy.encoder_bits is None else 1 << sy.encoder_bits,
+        max_wait_ns=round(sy.max_wait_s * 1e9),
+        robot_max_gap_ns=round(sy.max_gap_s * 1e9),
+        use_table=cfg.table_enabled and cfg.pipeline.frame == "part",
+        table_max_gap_ns=round(sy.table_max_gap_s * 1e9),
+        sensor_clock=clock,
+        robot_clock=clock,
+        table_clock=clock,
+    )
