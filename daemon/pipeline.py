@@ -120,17 +120,22 @@ class Pipeline:
         robot: Device[RobotState],
         pairer: Pairer,
         setup: AlignmentSetup,
-        publish: Callable[..., int],
+        publish: Callable[..., int] | None,
         table: Device[TableState] | None = None,
         settings: PipelineSettings | None = None,
         publish_status: Callable[[dict[str, Any]], None] | None = None,
+        on_batch: Callable[[PairedBatch], None] | None = None,
     ) -> None:
+        """``publish`` receives aligned batches (``DaemonZenoh.publish_cloud``'s signature);
+        ``on_batch`` receives every paired batch before alignment (calibration procedures
+        record them). Either may be None."""
         self.settings = settings or PipelineSettings()
         self.sensor, self.robot, self.table = sensor, robot, table
         self.pairer = pairer
         self._setup = setup
         self._publish = publish
         self._publish_status = publish_status
+        self._on_batch = on_batch
         s = self.settings
         self._profiles: queue.Queue[Profile] = queue.Queue(s.profile_queue)
         self._robot_q: queue.Queue[RobotState] = queue.Queue(s.state_queue)
@@ -274,6 +279,12 @@ class Pipeline:
                 break
 
     def _emit(self, batch: PairedBatch) -> None:
+        if self._on_batch is not None:
+            self._on_batch(batch)
+        if self._publish is None:
+            self.published_batches += 1
+            self.published_profiles += batch.n_profiles
+            return
         setup = self._setup
         valid = batch.valid
         frame = setup.frame
