@@ -44,19 +44,26 @@ class CloudClient:
         mode: Literal["peer", "client"] = "peer",
         capacity: int = 8,
         session: zenoh.Session | None = None,
+        subscribe: bool = True,
+        multicast_scouting: bool = False,
     ) -> None:
+        """``subscribe`` False: only query/liveliness (no cloud traffic is pulled)."""
         if capacity < 1:
             raise ValueError("capacity must be >= 1")
         self.prefix = prefix.rstrip("/")
         self._own_session = session is None
-        self.session = session or open_session(mode, connect, listen)
+        self.session = session or open_session(mode, connect, listen, multicast_scouting)
         self._ring: deque[bytes] = deque(maxlen=capacity)
         self._cond = threading.Condition()
         self.received = 0
         self.dropped = 0
         self.malformed = 0
         self._closed = False
-        self._sub = self.session.declare_subscriber(f"{self.prefix}/cloud", self._on_sample)
+        self._sub = (
+            self.session.declare_subscriber(f"{self.prefix}/cloud", self._on_sample)
+            if subscribe
+            else None
+        )
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         data = sample.payload.to_bytes()
@@ -110,7 +117,8 @@ class CloudClient:
     def close(self) -> None:
         if self._closed:
             return
-        self._sub.undeclare()
+        if self._sub is not None:
+            self._sub.undeclare()
         with self._cond:
             self._closed = True
             self._cond.notify_all()

@@ -142,7 +142,7 @@ def resolve_target(
     return Target(_check_prefix(prefix if prefix is not None else z.prefix), endpoints, chosen)
 
 
-def open_client(target: Target, capacity: int) -> CloudClient:
+def open_client(target: Target, capacity: int, subscribe: bool = True) -> CloudClient:
     """A :class:`CloudClient` towards ``target``; a bad endpoint is a user error (exit 2)."""
     import zenoh
 
@@ -150,7 +150,11 @@ def open_client(target: Target, capacity: int) -> CloudClient:
 
     try:
         return CloudClient(
-            target.prefix, connect=list(target.connect), mode=target.mode, capacity=capacity
+            target.prefix,
+            connect=list(target.connect),
+            mode=target.mode,
+            capacity=capacity,
+            subscribe=subscribe,
         )
     except zenoh.ZError as exc:
         raise fail(f"cannot open a zenoh session ({target.describe()}): {exc}", 2) from None
@@ -383,7 +387,7 @@ def status(
     """Show the daemon's status, counters and liveliness (exit 1 when no daemon answers)."""
     target = resolve_target(config, prefix, connect, mode)
     with stop_on_signals() as stop:
-        client = open_client(target, capacity=1)
+        client = open_client(target, capacity=1, subscribe=False)
         listener = None
         try:
             listener = _StatusListener(client)
