@@ -13,7 +13,9 @@ Pipeline of the robust fit (all lengths in metres on the interface):
    one batched linear solve and scored in one broadcast with a truncated quadratic (MSAC) cost on a
    random subset of the points; the best of a batch is refitted on its consensus (LO-RANSAC). The
    inlier band is three times a noise scale estimated from the thickness of nearest-neighbour
-   patches, so no noise level has to be configured. The number of draws adapts to the best inlier
+   patches, so no noise level has to be configured. Where the ball departs from a sphere by more
+   than that (noise-free data, a sheared sweep), the band is widened until the best sphere's
+   consensus is complete and fixes the sphere. The number of draws adapts to the best inlier
    fraction seen (99.9 % confidence of one clean sample). Draws come from a seeded
    ``np.random.Generator``: results are reproducible.
 2. **Riemann fit + IRLS.** The consensus points are centred, scaled and lifted onto the paraboloid
@@ -80,6 +82,10 @@ _PREVIEW_KEEP = 16  # hypotheses per batch that get the full scoring
 _NOISE_POINTS = 1000  # neighbourhoods used for the noise estimate
 _MAX_RADIUS_U = 1e6  # radius beyond which a fit is a plane (normalised units)
 _SCALE_FLOOR_U = 1e-9  # robust scale floor (normalised units), for noise-free data
+_LADDER_STEP = 4.0  # factor by which the hypothesis band widens while the consensus is incomplete
+_LADDER_GROWTH = 1.05  # consensus complete: widening the band by _LADDER_STEP adds < 5 % points
+_LADDER_MIN_SAMPLES = 4  # ... and it holds at least this many minimal samples' worth of points
+_LADDER_MAX = 0.1  # widest band, relative to the sphere's radius (or the largest one allowed)
 _IRLS_ITER = 30
 _PART_POINTS = 20000  # points the first IRLS stages work on, at most
 _BLOCK = 8192  # rows per block of the per-point passes
@@ -140,8 +146,11 @@ def fit_sphere(
     as the table from passing for a sphere.
     ``robust``: "tukey" (default), "huber" or None (plain least squares on all points).
     ``rng``: generator or seed for the hypothesis draws (None: seed 0, so results repeat).
-    ``threshold``: inlier band (m) of the hypothesis stage (default: 3x the estimated noise); the
-    robust scale is kept below twice this band, so that a poor start cannot spread to the table.
+    ``threshold``: inlier band (m) of the hypothesis stage (default: 3x the estimated noise, widened
+    while the best sphere's consensus is incomplete, as on noise-free scans of a ball that is not
+    quite a sphere); the robust scale is kept below twice this band, so that a poor start cannot
+    spread to the table. ``max_hypotheses``: minimal samples drawn at most per search (a quarter
+    of it in each repeat at a wider band).
     Raises ValueError on bad shapes, non-finite values, fewer than 4 points or coplanar points.
     Without ``radius`` or ``radius_range`` a scan in which the table far outweighs the ball may be
     fitted by a large sphere through the table: give one of them for cluttered scans.
@@ -571,49 +580,42 @@ def _draw_samples(pool: FloatArray, m: int, local: float, gen: np.random.Generat
     return np.concatenate([glob, pool[idx]])
 
 
-def _hypothesise(
-    U: FloatArray,
+def _search(
+    sub: FloatArray,
+    band: float,
+    seeds: list[_Sphere],
     rho_known: float | None,
-    rho_range: tuple[float, float] | None,
-    band: float | None,
+    rho_bounds: tuple[float, float],
+    locals_: list[float],
     gen: np.random.Generator,
     max_hypotheses: int,
-) -> tuple[BoolArray, float | None]:
-    """Consensus set (N,) of the best sphere hypothesis (all points if none is admissible) and the
-    inlier band used (None when the stage was skipped)."""
-    n, d = U.shape
-    everything = np.ones(n, bool)
-    if n < 2 * (4 * d + 4):
-        # Too few points for the neighbourhood noise estimate and a meaningful consensus.
-        return everything, None
-    if band is None:
-        band = _BAND_SIGMAS * _noise_sigma(U, gen)
-    band = max(band, 1e-9)
-    sub = U[gen.choice(n, size=min(n, _SCORE_POINTS), replace=False)]
-    # Neighbourhood radii for local sampling, cycled batch by batch: about the sphere's radius.
-    if rho_range is None:
-        # No prior: a sphere wider than the scan is more likely a plane (the table) than the ball,
-        # and the ball may be small: try several scales.
-        lo, hi = 0.0, 0.5 * float(np.linalg.norm(U.max(axis=0) - U.min(axis=0)))
-        locals_ = [hi / 2.0, hi / 4.0, hi / 8.0, hi / 16.0]
-    else:
-        lo, hi = rho_range
-        locals_ = [hi, max(lo, hi / 2.0)]
-    if rho_known is not None:
-        locals_ = [rho_known]
-
-    # The plain fit of all points competes too: it wins on clean data, whatever its radius (unless
-    # a radius range was given).
+) -> tuple[_Sphere | None, int]:
+    """Best sphere (MSAC cost at ``band``) among the ``seeds`` and minimal-sample hypotheses drawn
+    until the adaptive count is reached (None if none is admissible), and the number drawn."""
+    d = sub.shape[1]
+    lo, hi = rho_bounds
     best_cost, best_c, best_rho, best_frac = math.inf, np.zeros(d), math.nan, 0.0
-    whole = _riemann(sub, None)
-    if whole is not None:
-        rho_w = whole[1] if rho_known is None else rho_known
-        if rho_range is None or lo <= rho_w <= hi:
-            cost, count = _msac(sub, whole[0][None, :], np.array([rho_w]), band)
-            best_cost, best_c, best_rho = float(cost[0]), whole[0], rho_w
-            best_frac = float(count[0]) / len(sub)
-
     m = d + 1 if rho_known is None else d
+
+    def refine(c: FloatArray, rho: float, cost: float) -> tuple[FloatArray, float, float, int]:
+        # Local optimisation (LO-RANSAC): a minimal sample of noisy points is a rough sphere;
+        # refitting its consensus often scores much better and stops the search sooner.
+        near = np.abs(_residuals(sub, c, rho)) < band
+        refit = _riemann(sub, near.astype(np.float64))
+        if refit is not None:
+            c_lo, rho_lo = refit[0], (refit[1] if rho_known is None else rho_known)
+            if lo <= rho_lo <= hi or rho_known is not None:
+                cost_lo, count_lo = _msac(sub, c_lo[None, :], np.array([rho_lo]), band)
+                if cost_lo[0] < cost:
+                    return c_lo, rho_lo, float(cost_lo[0]), int(count_lo[0])
+        return c, rho, cost, 0
+
+    for c_s, rho_s in seeds:
+        cost, count = _msac(sub, c_s[None, :], np.array([rho_s]), band)
+        if cost[0] < best_cost:
+            best_c, best_rho, best_cost, n_lo = refine(c_s, rho_s, float(cost[0]))
+            best_frac = max(float(count[0]), n_lo) / len(sub)
+
     drawn, needed = 0, max_hypotheses
     while drawn < min(needed, max_hypotheses):
         local = locals_[(drawn // _BATCH) % len(locals_)]
@@ -634,18 +636,10 @@ def _hypothesise(
         cost, count = _msac(sub, centres[top], radii[top], band)
         i = int(np.argmin(cost))
         if cost[i] < best_cost:
-            best_cost, best_c, best_rho = float(cost[i]), centres[top[i]], float(radii[top[i]])
-            # Local optimisation (LO-RANSAC): a minimal sample of noisy points is a rough sphere;
-            # refitting its consensus often scores much better and stops the search sooner.
-            near = np.abs(_residuals(sub, best_c, best_rho)) < band
-            refit = _riemann(sub, near.astype(np.float64))
-            if refit is not None:
-                c_lo, rho_lo = refit[0], (refit[1] if rho_known is None else rho_known)
-                if lo <= rho_lo <= hi or rho_known is not None:
-                    cost_lo, count_lo = _msac(sub, c_lo[None, :], np.array([rho_lo]), band)
-                    if cost_lo[0] < best_cost:
-                        best_cost, best_c, best_rho = float(cost_lo[0]), c_lo, rho_lo
-                        count = np.append(count, count_lo)
+            best_c, best_rho, best_cost, n_lo = refine(
+                centres[top[i]], float(radii[top[i]]), float(cost[i])
+            )
+            count = np.append(count, n_lo)
         best_frac = max(best_frac, float(count.max()) / len(sub))
         if best_frac > 0.0:
             p_clean = best_frac**m
@@ -655,9 +649,112 @@ def _hypothesise(
                 else math.ceil(math.log(1.0 - _CONFIDENCE) / math.log1p(-p_clean))
             )
     if not math.isfinite(best_cost):
+        return None, drawn
+    return (best_c, best_rho), drawn
+
+
+def _supported(X: FloatArray, c: FloatArray) -> bool:
+    """Whether the points X on a sphere about c fix all its parameters (centre and radius), each
+    with the support of more than one point: the largest leverage of the geometric fit is below
+    one half. Noise-free profiles make consensus sets that fail this: one profile's arc lies
+    exactly on every sphere through its circle, and a single point off its plane picks one of
+    them; such a set is exact at any band, but says nothing about the band the ball needs."""
+    D, dist = _distances(X, c)
+    J = np.column_stack([D / np.maximum(dist, 1e-300)[:, None], np.ones(len(X))])
+    Q, sv, _ = np.linalg.svd(J, full_matrices=False)
+    if not sv[-1] > 1e-8 * sv[0]:
+        return False  # coplanar points: no sphere at all
+    return float(np.einsum("ij,ij->i", Q, Q).max()) < 0.5
+
+
+def _hypothesise(
+    U: FloatArray,
+    rho_known: float | None,
+    rho_range: tuple[float, float] | None,
+    band: float | None,
+    gen: np.random.Generator,
+    max_hypotheses: int,
+) -> tuple[BoolArray, float | None]:
+    """Consensus set (N,) of the best sphere hypothesis (all points if none is admissible) and the
+    inlier band used (None when the stage was skipped).
+
+    Without a given ``band`` the search starts at a band from the estimated noise. That estimate
+    sees only noise: on noise-free data it collapses (exact planes such as a simulated table hold
+    most neighbourhoods) while the ball may still depart from a sphere by far more (a sheared
+    sweep). A band below that misfit leaves every hypothesis with little more than its own sample,
+    and the choice is arbitrary (often a circle of table points). So the band is widened, and the
+    search repeated, until the best sphere's consensus is complete: four times the band adds
+    almost no points (the noise, or the misfit, lies within it)."""
+    n, d = U.shape
+    everything = np.ones(n, bool)
+    if n < 2 * (4 * d + 4):
+        # Too few points for the neighbourhood noise estimate and a meaningful consensus.
+        return everything, None
+    fixed_band = band is not None
+    if band is None:
+        band = _BAND_SIGMAS * _noise_sigma(U, gen)
+    band = max(band, _SCALE_FLOOR_U)
+    sub = U[gen.choice(n, size=min(n, _SCORE_POINTS), replace=False)]
+    # Neighbourhood radii for local sampling, cycled batch by batch: about the sphere's radius.
+    if rho_range is None:
+        # No prior: a sphere wider than the scan is more likely a plane (the table) than the ball,
+        # and the ball may be small: try several scales.
+        lo, hi = 0.0, 0.5 * float(np.linalg.norm(U.max(axis=0) - U.min(axis=0)))
+        locals_ = [hi / 2.0, hi / 4.0, hi / 8.0, hi / 16.0]
+    else:
+        lo, hi = rho_range
+        locals_ = [hi, max(lo, hi / 2.0)]
+    if rho_known is not None:
+        locals_ = [rho_known]
+
+    # The plain fit of all points competes too: it wins on clean data, whatever its radius (unless
+    # a radius range was given).
+    plain: list[_Sphere] = []
+    whole = _riemann(sub, None)
+    if whole is not None:
+        rho_w = whole[1] if rho_known is None else rho_known
+        if rho_range is None or lo <= rho_w <= hi:
+            plain.append((whole[0], rho_w))
+
+    m = d + 1 if rho_known is None else d
+    # Widest band tried: a fraction of the sphere's size, beyond which the ball no longer stands
+    # out from the clutter around it.
+    band_max = _LADDER_MAX * (rho_known if rho_known is not None else hi)
+    first: tuple[_Sphere | None, float] | None = None
+    drawn = 0
+    seeds, budget = plain, max_hypotheses
+    while True:
+        best, k = _search(sub, band, seeds, rho_known, (lo, hi), locals_, gen, budget)
+        drawn += k
+        if first is None:
+            first = (best, band)
+        if fixed_band or best is None:
+            break
+        r = np.abs(_residuals(sub, *best))
+        near = r < band
+        n_in = int(np.count_nonzero(near))
+        n_wide = int(np.count_nonzero(r < _LADDER_STEP * band))
+        # Judged only on enough points that fix the sphere between them (see _supported).
+        n_need = _LADDER_MIN_SAMPLES * m
+        judged = n_in >= n_need and _supported(sub[near], best[0])
+        if judged and n_wide <= _LADDER_GROWTH * n_in:
+            break
+        if _LADDER_STEP * band > band_max:
+            # No band makes a complete consensus: keep the noise-based one.
+            best, band = first
+            break
+        log.debug("consensus %d/%d incomplete at band %.3g: widening", n_in, n_wide, band)
+        # Nothing to judge: skip to the band that gives this sphere enough points more.
+        k_more = min(n_in + n_need, len(r)) - 1
+        enough = 0.0 if judged else float(np.partition(r, k_more)[k_more])
+        band = max(_LADDER_STEP * band, min(enough, band_max))
+        # Carried over, the best sphere so far is refitted at the wider band (LO step): fewer
+        # fresh draws are needed there.
+        seeds, budget = [*plain, best], max(_BATCH, max_hypotheses // 4)
+    if best is None:
         log.debug("no admissible sphere hypothesis; starting from all points")
         return everything, band
-    consensus: BoolArray = np.abs(_residuals(U, best_c, best_rho)) < band
+    consensus: BoolArray = np.abs(_residuals(U, *best)) < band
     if consensus.sum() < d + 2:
         log.debug("hypothesis consensus too small (%d); starting from all points", consensus.sum())
         return everything, band

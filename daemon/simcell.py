@@ -7,6 +7,9 @@ driver connects (TCP), so ``wristscan run`` with the same file talks to it uncha
 from __future__ import annotations
 
 import dataclasses
+import socket
+import tomllib
+from pathlib import Path
 from typing import Any
 
 from wristscan.drivers.sim.cell import CellSpec, SimulatedCell
@@ -17,7 +20,7 @@ from wristscan.drivers.sim.ur_controller import ControllerConfig
 
 from .config import Config, SimConfig
 
-__all__ = ["cell_spec", "start_cell"]
+__all__ = ["cell_spec", "dump_toml", "free_sim_config", "start_cell"]
 
 
 def _sensor_endpoint(cfg: Config) -> dict[str, Any]:
@@ -116,3 +119,75 @@ def start_cell(
     if table_port is not None and spec.table is not None:
         spec = dataclasses.replace(spec, table=dataclasses.replace(spec.table, port=table_port))
     return SimulatedCell(spec).start()
+
+
+# --------------------------------------------------------------------------------------------
+# A copy of the embedded default on free loopback addresses (tests, demo, several cells at once)
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int | float):
+        return repr(v)
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def dump_toml(doc: dict[str, Any]) -> str:
+    """Plain TOML for a document of scalars, arrays and nested tables (no arrays of tables)."""
+    lines: list[str] = []
+
+    def table(prefix: str, d: dict[str, Any]) -> None:
+        scalars = {k: v for k, v in d.items() if not isinstance(v, dict)}
+        if prefix and scalars:
+            lines.append(f"\n[{prefix}]")
+        for k, v in scalars.items():
+            lines.append(f"{k} = {_toml_value(v)}")
+        for k, v in d.items():
+            if isinstance(v, dict):
+                table(f"{prefix}.{k}" if prefix else k, v)
+
+    table("", doc)
+    return "\n".join(lines) + "\n"
+
+
+def _free_tcp_port(host: str = "127.0.0.1") -> int:
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+def _free_udp_port(host: str = "127.0.0.1") -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+def free_sim_config(changes: dict[str, dict[str, Any]] | None = None) -> dict[str, Any]:
+    """The embedded default as a TOML document (dict) with a free controller address, sensor
+    port, table port and zenoh port, so that it runs beside other cells. ``changes`` are merged
+    section by section (``{"robot": {...}, "sim.sensor": {...}}``)."""
+    from wristscan.drivers.sim.ur_controller import pick_free_loopback_host
+
+    doc: dict[str, Any] = tomllib.loads(
+        (Path(__file__).with_name("default_sim.toml")).read_text(encoding="utf-8")
+    )
+    host = pick_free_loopback_host()
+    table_port = _free_tcp_port()
+    doc["robot"]["host"] = host
+    doc["sim"]["controller"]["host"] = host
+    doc["sensor"]["options"]["port"] = _free_udp_port()
+    doc["sensor"]["options"]["bind_host"] = "127.0.0.1"
+    doc["table"]["port"] = table_port
+    doc["sim"]["table"]["port"] = table_port
+    doc["zenoh"]["listen"] = [f"tcp/127.0.0.1:{_free_tcp_port()}"]
+    for dotted, values in (changes or {}).items():
+        node = doc
+        for part in dotted.split("."):
+            node = node.setdefault(part, {})
+        node.update(values)
+    return doc

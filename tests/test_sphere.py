@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from wristscan.calib import sphere
+from wristscan.calib import se3, sphere
 from wristscan.calib.sphere import CircleFit, SphereFit
 
 R_BALL = 12.7e-3  # m, a half-inch tooling ball
@@ -218,6 +218,109 @@ def test_radius_range_that_excludes_the_ball_is_an_error() -> None:
     pts = cap(np.random.default_rng(9), 300, 60.0)
     with pytest.raises(ValueError, match="radius_range"):
         sphere.fit_sphere(pts, radius_range=(30e-3, 50e-3))
+
+
+# ------------------------------------------------------------------------------- noise-free sweeps
+
+
+def swept_scene(
+    error_rotvec: np.ndarray, step: float = 0.4e-3, pitch: float = 0.4e-3
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Noise-free sweep of a ball on a post over an exact table, reconstructed with a sensor
+    orientation off by ``error_rotvec`` (rad), as a hand-eye guess maps it.
+
+    The sensor's fan origin moves along +X by ``step`` (m) per profile; each profile is ray-cast
+    in the plane x = const (nearest of ball, post and table; the ball hides most of the post), its
+    rays aimed ``pitch`` (m) apart on the table. Each profile is then put back rotated about its
+    origin, so the cloud is an affine (sheared) image of the scene: each profile an exact arc, the
+    table an exact plane, the ball an ellipsoid. Returns points (N, 3), labels (0 ball, 1 post,
+    2 table) and the sheared image of the centre, the ellipsoid's centre.
+    """
+    c = CENTRE
+    z_table = c[2] - R_BALL - POST_LENGTH
+    z_join = c[2] - np.sqrt(R_BALL**2 - POST_RADIUS**2)
+    offset = np.array([0.0, -0.040, 0.080])  # fan origin relative to the ball's profile
+    x, y = np.meshgrid(
+        c[0] + np.arange(-0.020, 0.020 + step / 2, step),  # profiles
+        c[1] + np.arange(-0.035, 0.035 + pitch / 2, pitch),  # rays aimed at these table points
+        indexing="ij",
+    )
+    o = np.column_stack([x.ravel(), np.broadcast_to(c[1:] + offset[1:], (x.size, 2))])
+    d = np.column_stack([np.zeros(x.size), y.ravel() - o[:, 1], z_table - o[:, 2]])
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    oc = o - c
+    b = np.einsum("ij,ij->i", d, oc)
+    disc = b * b - np.einsum("ij,ij->i", oc, oc) + R_BALL**2
+    t_ball = np.where(disc >= 0.0, -b - np.sqrt(np.abs(disc)), np.inf)
+    a2 = np.einsum("ij,ij->i", d[:, :2], d[:, :2])
+    b2 = np.einsum("ij,ij->i", d[:, :2], oc[:, :2])
+    disc2 = b2 * b2 - a2 * (np.einsum("ij,ij->i", oc[:, :2], oc[:, :2]) - POST_RADIUS**2)
+    t_post = np.where(disc2 >= 0.0, (-b2 - np.sqrt(np.abs(disc2))) / a2, np.inf)
+    z_post = o[:, 2] + t_post * d[:, 2]
+    t_post = np.where((z_post >= z_table) & (z_post <= z_join), t_post, np.inf)
+    t = np.stack([t_ball, t_post, (z_table - o[:, 2]) / d[:, 2]], axis=1)
+    labels = np.argmin(t, axis=1)
+    rays = t[np.arange(len(t)), labels, None] * d
+    R_err = se3.rotvec_to_matrix(error_rotvec)
+    points = o + rays @ R_err.T
+    return points, labels, c + offset + R_err @ -offset
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "step", "pitch"),
+    [
+        ({"radius": R_BALL}, 0.4e-3, 0.4e-3),
+        ({}, 0.4e-3, 0.4e-3),
+        ({"radius_range": (5e-3, 20e-3)}, 0.4e-3, 0.4e-3),
+        ({"robust": "huber"}, 0.4e-3, 0.4e-3),
+        ({"radius": R_BALL}, 1e-3, 0.2e-3),  # fewer, denser profiles: longer exact arcs
+        ({}, 1e-3, 0.2e-3),
+    ],
+)
+def test_noise_free_sheared_sweep_over_an_exact_table(
+    kwargs: dict, step: float, pitch: float
+) -> None:
+    # Regression: a noise estimate of zero (the exact table fills most neighbourhoods) made an
+    # inlier band far below the ball's departure from a sphere; the search then settled on exact
+    # arcs or table circles, and the fit failed as "coplanar" or kept a sliver of the ball.
+    pts, labels, centre = swept_scene(np.array([1e-4, -1e-4, 1e-4]), step, pitch)
+    assert (labels == 1).sum() > 50 and (labels == 2).sum() > 2 * (labels == 0).sum()
+    fit = sphere.fit_sphere(pts, **kwargs)
+    assert np.linalg.norm(fit.centre - centre) < 1e-6
+    assert fit.radius == pytest.approx(R_BALL, abs=1e-6)
+    assert fit.inliers[labels == 0].all()
+    assert not fit.inliers[labels != 0].any()
+    assert fit.rms < 1e-6
+
+
+@pytest.mark.parametrize("kwargs", [{"radius": R_BALL}, {}])
+def test_sweep_from_a_rough_sensor_orientation_ignores_the_exact_table(kwargs: dict) -> None:
+    # A hand-eye start 1 degree off: the ball departs from a sphere by 30 um RMS, the table is
+    # still exact. The whole ball is kept and the clutter changes nothing. (The best sphere through
+    # an ellipsoid's visible side is off its centre by a fraction of error * R.)
+    error = np.array([0.01, -0.01, 0.01])
+    pts, labels, centre = swept_scene(error)
+    fit = sphere.fit_sphere(pts, **kwargs)
+    ball_only = sphere.fit_sphere(pts[labels == 0], **kwargs)
+    assert np.linalg.norm(fit.centre - ball_only.centre) < 1e-6
+    assert np.linalg.norm(fit.centre - centre) < 0.2 * np.linalg.norm(error) * R_BALL
+    assert fit.inliers[labels == 0].all()
+    assert not fit.inliers[labels != 0].any()
+    assert 5e-6 < fit.scale < 1e-4
+
+
+def test_noise_free_elliptic_arc_over_an_exact_table_line() -> None:
+    # The same in a profile: an arc sheared by a y-z skew of the sensor, an exact table line.
+    c = np.array([0.003, POST_LENGTH + R_BALL])
+    t = np.deg2rad(np.linspace(-20.0, 200.0, 300))
+    arc_pts = c + R_BALL * np.column_stack([np.cos(t), np.sin(t)])
+    y = np.arange(-0.040, 0.040, 0.1e-3)
+    pts = np.vstack([arc_pts, np.column_stack([y, np.zeros_like(y)])])
+    pts[:, 1] += 1e-4 * (pts[:, 0] - c[0])  # skew about the ball's centre: it stays the centre
+    for kwargs in ({"radius": R_BALL}, {"radius_range": (0.0, 1.01 * R_BALL)}):
+        fit = sphere.fit_circle(pts, **kwargs)
+        assert np.linalg.norm(fit.centre - c) < 1e-6
+        assert fit.inliers[:300].all() and not fit.inliers[300:].any()
 
 
 # ------------------------------------------------------------------------------- circles
