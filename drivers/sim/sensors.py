@@ -1171,6 +1171,8 @@ class _Runtime:
         self.down_until_ns = 0
         self.link.come_back(self.sel)
         if self.reboot_on_return:
+            # Exposures before the restarted clock's zero would get negative device times.
+            self.k_next = max(self.k_next, math.ceil((now_ns - self.t0_ns) / self.period_ns))
             self.counter_base = self.k_next
             self.clock.reset(now_ns)
             self.proto.on_reboot()
