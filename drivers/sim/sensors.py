@@ -53,7 +53,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-import multiprocessing as mp
 import os
 import selectors
 import socket
@@ -73,6 +72,7 @@ from wristscan.calib import se3
 from .. import lpf1, rf627, scip
 from .clock import DeviceClock
 from .laser import LaserModel, Measurement
+from .process import SimProcess
 from .scene import Scene, demo_scene, sensor_looking_down
 
 __all__ = [
@@ -259,7 +259,7 @@ class SensorSimConfig:
 # Parent side
 
 
-class SimulatedSensor:
+class SimulatedSensor(SimProcess):
     """Run a simulated sensor in its own process (spawn); a context manager.
 
     ``scene`` defaults to :func:`~.scene.demo_scene`; ``robot_ring``/``table_ring`` are
@@ -273,38 +273,15 @@ class SimulatedSensor:
         robot_ring: str | None = None,
         table_ring: str | None = None,
     ) -> None:
+        super().__init__()
         self.config = config or SensorSimConfig()
+        self.process_name = f"sim-sensor-{self.config.kind}"
         self.scene = scene
         self.robot_ring = robot_ring
         self.table_ring = table_ring
-        self.endpoint: dict[str, Any] = {}
-        self._proc: Any = None
-        self._conn: Connection | None = None
 
-    def start(self, timeout_s: float = 30.0) -> SimulatedSensor:
-        ctx = mp.get_context("spawn")
-        parent, child = ctx.Pipe()
-        self._proc = ctx.Process(
-            target=_serve,
-            args=(self.config, self.scene, self.robot_ring, self.table_ring, child),
-            name=f"sim-sensor-{self.config.kind}",
-            daemon=True,
-        )
-        self._proc.start()
-        child.close()
-        self._conn = parent
-        if not parent.poll(timeout_s):
-            self.stop()
-            raise RuntimeError(f"simulated {self.config.kind} sensor did not start")
-        try:
-            kind, payload = parent.recv()
-        except EOFError:
-            kind, payload = "error", "the process exited"
-        if kind != "ready":
-            self.stop()
-            raise RuntimeError(f"simulated {self.config.kind} sensor failed: {payload}")
-        self.endpoint = payload
-        return self
+    def _target(self) -> tuple[Callable[..., None], tuple[Any, ...]]:
+        return _serve, (self.config, self.scene, self.robot_ring, self.table_ring)
 
     def _call(self, *msg: Any, timeout_s: float = 10.0) -> Any:
         if self._conn is None:
@@ -346,30 +323,7 @@ class SimulatedSensor:
         result: dict[str, Any] = self._call("info")
         return result
 
-    def stop(self) -> None:
-        if self._proc is None:
-            return
-        try:
-            if self._conn is not None:
-                self._conn.send(("stop",))
-        except (BrokenPipeError, OSError):
-            pass
-        self._proc.join(timeout=5)
-        if self._proc.is_alive():
-            self._proc.kill()
-            self._proc.join(timeout=5)
-        if self._conn is not None:
-            self._conn.close()
-        self._proc = None
-        self._conn = None
-
-    close = stop
-
-    def __enter__(self) -> SimulatedSensor:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
+    close = SimProcess.stop
 
 
 # ----------------------------------------------------------------------------------------------

@@ -23,12 +23,13 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
-import multiprocessing as mp
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from typing import Any, Literal
 
+from .process import SimProcess
 from .truth import TruthRing
 
 __all__ = ["REG", "SimulatedTable", "TableMotion", "TableSimConfig"]
@@ -220,40 +221,22 @@ def _serve(config: TableSimConfig, ring_name: str | None, conn: Connection) -> N
     asyncio.run(main())
 
 
-class SimulatedTable:
+class SimulatedTable(SimProcess):
     """Start the simulated table in a process of its own; a context manager.
 
     ``endpoint`` holds ``{"host", "port"}`` for TCP or ``{"port_path"}`` (a pty path that pyserial
     and pymodbus open like a serial port) for RTU.
     """
 
+    process_name = "sim-table"
+
     def __init__(self, config: TableSimConfig | None = None, ring_name: str | None = None) -> None:
+        super().__init__()
         self.config = config or TableSimConfig()
         self.ring_name = ring_name
-        self.endpoint: dict[str, Any] = {}
-        self._proc: Any = None
-        self._conn: Connection | None = None
 
-    def start(self, timeout_s: float = 30.0) -> SimulatedTable:
-        ctx = mp.get_context("spawn")
-        parent, child = ctx.Pipe()
-        self._proc = ctx.Process(
-            target=_serve, args=(self.config, self.ring_name, child), name="sim-table", daemon=True
-        )
-        self._proc.start()
-        child.close()
-        self._conn = parent
-        if not parent.poll(timeout_s):
-            self.stop()
-            raise RuntimeError("simulated table did not start")
-        try:
-            kind, endpoint = parent.recv()
-        except EOFError:
-            self.stop()
-            raise RuntimeError("simulated table exited during start-up (see its log)") from None
-        assert kind == "ready"
-        self.endpoint = endpoint
-        return self
+    def _target(self) -> tuple[Callable[..., None], tuple[Any, ...]]:
+        return _serve, (self.config, self.ring_name)
 
     def true_angle(self) -> float:
         """The table's true unwrapped angle (rad), asked from its process."""
@@ -261,26 +244,3 @@ class SimulatedTable:
         self._conn.send(("angle",))
         _, value = self._conn.recv()
         return float(value)
-
-    def stop(self) -> None:
-        if self._proc is None:
-            return
-        try:
-            if self._conn is not None:
-                self._conn.send(("stop",))
-        except (BrokenPipeError, OSError):
-            pass
-        self._proc.join(timeout=5)
-        if self._proc.is_alive():
-            self._proc.kill()
-            self._proc.join(timeout=5)
-        if self._conn is not None:
-            self._conn.close()
-        self._proc = None
-        self._conn = None
-
-    def __enter__(self) -> SimulatedTable:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
