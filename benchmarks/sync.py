@@ -4,7 +4,8 @@ A simulated cell with known truth, entirely in this process (no servers): a UR5e
 follows a linear path at 250 mm/s (the joint trajectory comes from inverse kinematics, splined
 in time, and *is* the truth), a 500 Hz controller stream and a 1 kHz profile stream, each with its
 own clock, drift, offset, transport delay floor, arrival jitter, delay spikes and (robot) skipped
-samples. See docs/sync.md for what each figure measures.
+samples; then both streams at 500 Hz read by a process short of CPU (stalls, load, overload,
+heavy-tailed spikes, a start-up backlog). See docs/sync.md for what each figure measures.
 
 Run: ``.venv/bin/python benchmarks/sync.py [--json out.json] [--seed N]``; exits 1 on a miss.
 """
@@ -553,6 +554,261 @@ def figure_reset_and_wrap(seed: int, latency_ns: int) -> list[Figure]:
     ]
 
 
+# ----------------------------------------------------------------------------- loaded receiver
+#
+# What a loaded 2-core host does to arrival times (measured with `wristscan demo`, see
+# docs/sync.md): the receiving process is starved of CPU now and then, so records queue in the
+# socket and are read late, in bursts. Both streams are read by the same process, so they share
+# the schedule of these episodes.
+
+LOADED_FLOOR_NS = 50_000  # smallest loopback delay
+LOADED_JITTER_NS = 100_000  # gamma(shape 2) standard deviation on top of it
+LOADED_SPIKE_P = 0.02  # share of records delayed by a heavy-tailed extra (Pareto, alpha 1.5)
+LOADED_SERVICE_NS = 30_000  # CPU time the reader needs per record, normally
+LOADED_BACKLOG_NS = 300_000_000  # sensor records queued before the daemon starts reading
+LOADED_SENSOR_OFFSET_NS = 1000 * S  # as the simulated sensor: clock 1000 s ahead, 30 ppm fast
+LOADED_SENSOR_DRIFT = 30e-6
+LOADED_PERIOD_NS = 2_000_000  # both streams at 500 Hz, as in the demo
+
+
+@dataclass(frozen=True)
+class Load:
+    """Episodes (host ns, ``(k, 2)`` start/end) when the receiving process is short of CPU."""
+
+    stalls: IntArray
+    """Nothing is read (50-800 ms); the queue is then read in a burst."""
+    loads: IntArray
+    """The reader wakes 1-5 ms late for each record (1-4 s)."""
+    overloads: IntArray
+    """Reading a record takes 1.2-1.6 record periods: a backlog grows linearly (0.3-1.5 s)."""
+
+
+def _episodes(
+    rng: np.random.Generator,
+    t0: int,
+    t1: int,
+    gap_s: tuple[float, float],
+    dur_s: tuple[float, float],
+) -> IntArray:
+    out: list[tuple[int, int]] = []
+    t = t0 + rng.uniform(*gap_s) * S
+    while t < t1:
+        d = rng.uniform(*dur_s) * S
+        out.append((round(t), round(t + d)))
+        t += d + rng.uniform(*gap_s) * S
+    return np.array(out, dtype=np.int64).reshape(-1, 2)
+
+
+def load_schedule(rng: np.random.Generator, seconds: float) -> Load:
+    t1 = T0 + round(seconds * S)
+    return Load(
+        stalls=_episodes(rng, T0, t1, (1.0, 4.0), (0.05, 0.8)),
+        loads=_episodes(rng, T0, t1, (2.0, 6.0), (1.0, 4.0)),
+        overloads=_episodes(rng, T0, t1, (4.0, 10.0), (0.3, 1.5)),
+    )
+
+
+def _end_of(t: int, episodes: IntArray) -> int:
+    """End of the episode containing host time ``t``, or -1."""
+    k = int(np.searchsorted(episodes[:, 0], t, side="right")) - 1
+    return int(episodes[k, 1]) if k >= 0 and t < episodes[k, 1] else -1
+
+
+def receive(
+    rng: np.random.Generator,
+    sent: IntArray,
+    start_ns: int,
+    load: Load,
+    period_ns: int,
+    max_backlog_ns: int = S,
+) -> tuple[IntArray, NDArray[np.bool_]]:
+    """Host receive stamps of records sent at ``sent`` (sorted, ns), read one at a time in order
+    by a process that starts reading at ``start_ns``, under ``load``. Records arriving when the
+    queue is ``max_backlog_ns`` deep are lost (socket buffer full). Returns (stamps, kept)."""
+    n = sent.shape[0]
+    net = LOADED_FLOOR_NS + rng.gamma(2.0, LOADED_JITTER_NS / math.sqrt(2.0), n)
+    spike = rng.random(n) < LOADED_SPIKE_P
+    net[spike] += np.minimum(rng.pareto(1.5, int(spike.sum())) * MS, 200 * MS)
+    ready = (sent + np.rint(net).astype(np.int64)).tolist()
+    late = rng.uniform(1 * MS, 5 * MS, n)  # wake-up delay under load
+    slow = rng.uniform(1.2, 1.6, n) * period_ns
+    stamp = np.zeros(n, dtype=np.int64)
+    kept = np.ones(n, dtype=bool)
+    done = start_ns  # when the reader is free for the next record
+    for i in range(n):
+        r = ready[i]
+        if done - r > max_backlog_ns:
+            kept[i] = False
+            continue
+        s = done
+        if r > done:  # queue empty: the reader sleeps until the record comes
+            s = r + (int(late[i]) if _end_of(r, load.loads) >= 0 else 0)
+        while (end := _end_of(s, load.stalls)) >= 0:
+            s = end
+        stamp[i] = s
+        over = _end_of(s, load.overloads) >= 0
+        done = s + (int(slow[i]) if over else LOADED_SERVICE_NS)
+    return stamp, kept
+
+
+def make_loaded_streams(truth: Truth, seconds: float, seed: int) -> tuple[Streams, Load]:
+    """500 Hz robot and sensor streams read by a loaded process; the sensor's records of the
+    0.3 s before the daemon starts reading are queued and read in a burst at start."""
+    rng = np.random.default_rng(seed)
+    load = load_schedule(rng, seconds)
+    n_r = int((seconds + 0.5) * S / LOADED_PERIOD_NS)
+    k = np.arange(n_r, dtype=np.int64)
+    ctrl = C0 + k * LOADED_PERIOD_NS
+    h = T0 + np.rint(k * LOADED_PERIOD_NS * (1.0 + ROBOT_DRIFT)).astype(np.int64)
+    r_arr, r_kept = receive(rng, h, T0, load, LOADED_PERIOD_NS)
+    j = np.arange(int((seconds + LOADED_BACKLOG_NS / S) * S / LOADED_PERIOD_NS), dtype=np.int64)
+    exposure = T0 - LOADED_BACKLOG_NS + j * LOADED_PERIOD_NS
+    stamp = exposure + SENSOR_LATENCY_NS
+    dev = LOADED_SENSOR_OFFSET_NS + np.rint((stamp - T0) * (1.0 + LOADED_SENSOR_DRIFT)).astype(
+        np.int64
+    )
+    s_arr, s_kept = receive(rng, stamp, T0, load, LOADED_PERIOD_NS)
+    h = h[r_kept]
+    st = Streams(
+        ctrl_ns=ctrl[r_kept],
+        robot_true_ns=h,
+        robot_arrival=r_arr[r_kept],
+        q=truth.q(h),
+        tcp=se3.matrix_to_pose(truth.flange2base(h)),
+        exposure=exposure[s_kept],
+        stamp_true=stamp[s_kept],
+        sensor_ns=dev[s_kept],
+        sensor_arrival=s_arr[s_kept],
+        frame=j[s_kept],
+    )
+    return st, load
+
+
+def _total(episodes: IntArray) -> float:
+    return float(np.sum(episodes[:, 1] - episodes[:, 0])) / S
+
+
+def figure_load_and_stalls(seed: int) -> list[Figure]:
+    """Clock mapping and pairing when the receiving process is starved of CPU (see receive)."""
+    seconds = 20.0
+    truth = Truth(back_and_forth(seconds))
+    st, load = make_loaded_streams(truth, seconds, seed)
+    after = T0 + S // 2
+    # 1. The sensor clock alone, causally: each stamp mapped with the line known at its arrival.
+    cfg = pairer_config(SENSOR_LATENCY_NS)
+    clk = ClockMapper(cfg.sensor_clock)
+    n = st.sensor_ns.shape[0]
+    err = np.full(n, np.nan)
+    drift = np.full(n, np.nan)
+    for i in range(n):
+        e = clk.feed(int(st.sensor_ns[i]), int(st.sensor_arrival[i]))
+        if clk.is_locked(e):
+            truth_ns = st.stamp_true[i] + LOADED_FLOOR_NS
+            err[i] = float(clk.to_host(st.sensor_ns[i], e)) - truth_ns
+            drift[i] = clk.drift
+    locked = ~np.isnan(err)
+    first_lock_ms = float(st.sensor_arrival[int(np.argmax(locked))] - T0) / 1e6
+    late = st.sensor_arrival >= after
+    unlocked_late = int(np.count_nonzero(late & ~locked))
+    rms = float(np.sqrt(np.nanmean(err[late] ** 2)))
+    true_drift = 1.0 / (1.0 + LOADED_SENSOR_DRIFT) - 1.0
+    settled = st.sensor_arrival >= T0 + 5 * S
+    drift_err = float(np.nanmax(np.abs(drift[settled] - true_drift)))
+    delay = (st.sensor_arrival - st.stamp_true) / 1e6
+    # 2. Pairing: profiles dropped for an unlocked clock once the first 0.5 s are over (counted
+    # from the first profile received after 0.5 s: conservative, earlier ones may be included).
+    pairer = Pairer(cfg)
+    recs = records(st)
+    base: dict[str, int] | None = None
+    batches: list[PairedBatch] = []
+    for i, r in enumerate(recs):
+        if isinstance(r, Profile):
+            if base is None and r.host_time_ns >= after:
+                base = dict(pairer.dropped)
+            pairer.add_profile(r)
+        else:
+            pairer.add_robot_state(r)  # type: ignore[arg-type]
+        if i % 16 == 0:
+            batches += pairer.poll()
+    batches += pairer.poll(pairer.latest_host_ns + 2 * S)
+    assert base is not None
+    lost_clock = int(pairer.dropped["clock_unlocked"] - base["clock_unlocked"])
+    lost_robot = int(pairer.dropped["robot_clock_unlocked"] - base["robot_clock_unlocked"])
+    fc = np.concatenate([b.frame_counter for b in batches])
+    ex = np.concatenate([b.exposure_ns for b in batches])
+    F = np.concatenate([b.flange2base for b in batches])
+    idx = np.searchsorted(st.frame, fc)
+    e_true = st.exposure[idx]
+    sel = st.sensor_arrival[idx] >= after
+    # With equal delay floors the pose lookup needs only the sensor latency, but the exposure
+    # reported on the host clock is then late by that floor (see docs/sync.md).
+    ex_err = ex[sel] - LOADED_FLOOR_NS - e_true[sel]
+    rms_ex = float(np.sqrt(np.mean(ex_err.astype(np.float64) ** 2)))
+    steady = sel & (np.abs(truth.speed(e_true) - SPEED) < 1e-6)
+    disp = point_displacement(truth, F[steady], e_true[steady])
+    robot_resets = pairer.robot_clock.n_resets
+    sensor = pairer.sensor_clock(1)
+    dropped = {k: v for k, v in pairer.dropped.items() if v}
+    return [
+        Figure("load: stalls (50-800 ms)", len(load.stalls), "", "", None),
+        Figure(
+            "load: time under load / overload",
+            _total(load.loads) + _total(load.overloads),
+            "s",
+            "",
+            None,
+        ),
+        Figure("load: sensor delay median", float(np.median(delay)), "ms", "", None),
+        Figure(
+            "load: sensor delay 99th percentile", float(np.percentile(delay, 99)), "ms", "", None
+        ),
+        Figure("load: sensor clock restarts", clk.n_resets, "", "== 0", clk.n_resets == 0),
+        Figure("load: sensor clock re-anchors", clk.n_reanchors, "", "", None),
+        Figure("load: first lock after start", first_lock_ms, "ms", "<= 300", first_lock_ms <= 300),
+        Figure(
+            "load: arrivals unlocked after 0.5 s", unlocked_late, "", "== 0", unlocked_late == 0
+        ),
+        Figure("load: mapped time error RMS (t >= 0.5 s)", rms / 1e3, "us", "<= 200", rms <= 2e5),
+        Figure(
+            "load: max |error| (t >= 0.5 s)",
+            float(np.nanmax(np.abs(err[late]))) / 1e3,
+            "us",
+            "",
+            None,
+        ),
+        Figure(
+            "load: drift estimate", clk.drift * 1e6, "ppm", f"{true_drift * 1e6:.2f} (truth)", None
+        ),
+        Figure("load: max drift error (t >= 5 s)", drift_err * 1e6, "ppm", "", None),
+        Figure("load: robot clock restarts (pairer)", robot_resets, "", "== 0", robot_resets == 0),
+        Figure("load: dropped clock_unlocked after 0.5 s", lost_clock, "", "== 0", lost_clock == 0),
+        Figure(
+            "load: dropped robot_clock_unlocked after 0.5 s",
+            lost_robot,
+            "",
+            "== 0",
+            lost_robot == 0,
+        ),
+        Figure("load: paired exposure error RMS (t >= 0.5 s)", rms_ex / 1e3, "us", "", None),
+        Figure(
+            "load: displacement RMS, wristscan",
+            float(np.sqrt(np.mean(disp**2))) * 1e3,
+            "mm",
+            "",
+            None,
+        ),
+        Figure("load: profiles paired / received", pairer.paired / pairer.received, "", "", None),
+        Figure("load: profiles dropped, all reasons", sum(dropped.values()), "", "", None),
+        Figure(
+            "load: sensor clock restarts (pairer)",
+            sensor.n_resets,
+            "",
+            "== 0",
+            sensor.n_resets == 0,
+        ),
+    ]
+
+
 def run(seed: int = 1) -> list[Figure]:
     figs, latency_ns = figure_latency(seed)
     return (
@@ -560,6 +816,7 @@ def run(seed: int = 1) -> list[Figure]:
         + figs
         + figure_throughput(seed)
         + figure_reset_and_wrap(seed, latency_ns)
+        + figure_load_and_stalls(seed)
     )
 
 

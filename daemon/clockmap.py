@@ -25,13 +25,43 @@ To keep the fit cheap, points are reduced to one per ``bucket_ns`` of device tim
 above the current line): the lower envelope of a bucket is its lowest point up to ``d * bucket_ns``
 (0.5 us for 50 ppm and 10 ms buckets).
 
+A receiver short of CPU
+-----------------------
+A starved receiving process reads late: for a stall, nothing, then the queued records in a burst
+(delays decreasing by about one record period each); under load, every record a few ms late,
+for seconds; under overload, a backlog growing to a second. None of that moves the envelope, and
+none of it restarts the fit: lateness alone is no evidence of a clock change. Three measures keep
+the fit sound meanwhile:
+
+* buckets that a later bucket makes irrelevant (higher by more than ``prune_margin_ns`` plus
+  ``max_drift`` times their distance) are dropped, so a burst does not count as data span and
+  does not pull ``x_e`` into a stretch where the envelope is undetermined (start-up backlog);
+* when every arrival of a stretch reaching an end of the window is late (load longer than the
+  rest of the window), the hull edges at the quartiles disagree; the slope then stays where it
+  was instead of tilting towards the raised stretch;
+* the fitted slope is combined with the prior drift (the previous epoch's, else 0 with
+  ``typical_drift`` as its scale) by inverse-variance weights, so a short or noisy stretch
+  counts for little; a locked epoch unlocks only beyond ``unlock_factor`` times the limit.
+
 Discontinuities
 ---------------
-* Device time going backwards by more than ``reorder_tolerance_ns`` (a reboot, a counter reset),
-  or an arrival *before* the line by more than the jump tolerance (device clock stepped forward,
-  or the transport delay floor dropped) restarts the fit immediately.
-* Arrivals that stay above the line by more than the jump tolerance for ``persist_ns`` (device
-  clock stepped back a little, or the delay floor rose) restart it from those points.
+Only a causality violation or a device-time discontinuity changes the fit:
+
+* device time going back by more than ``reorder_tolerance_ns`` (a reboot, a counter reset):
+  new epoch at once;
+* an arrival further below a locked line than ``jump_tolerance_ns`` + 3 sigma, dropped there at
+  once (by more than that below the lowest of the recent arrivals): the device clock jumped
+  forward, new epoch at once;
+* an arrival below a locked line by more than ``reanchor_tolerance_ns`` + 3 sigma but reached
+  by steps (a backlog draining or a load ending onto a floor lower than the line): the fit had
+  locked on a raised delay floor. It is *re-anchored*: refitted from there in the same epoch,
+  drift and lock kept;
+* device time going back by less than the reorder tolerance, the records after it continuing
+  from there (not a reordered straggler), and arrivals then late by more than the jump
+  tolerance for ``persist_ns``: the device clock stepped back; new epoch from those arrivals;
+* device time not advancing for ``persist_ns`` of host time while records keep coming: the
+  device clock stopped; new epoch.
+
 Each restart opens a new *epoch*. Records keep the epoch they were fed in, and the last line of
 an old epoch stays available, so records from before a reset are still mapped with their own
 line. The drift survives a restart (same oscillator), so a new epoch locks on its offset alone
@@ -43,6 +73,7 @@ by :class:`CounterUnwrapper` or :func:`unwrap`.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 from collections import deque
@@ -72,6 +103,8 @@ _BISECT_ITERATIONS = 40
 _PRUNE_AFTER = 10
 # The uncertainty is the RMS of the split differences of this many recent refits.
 _U_HISTORY = 16
+# Recent arrivals an arrival below the line is compared with (jump or descending floor).
+_RECENT = 8
 
 
 class ClockUnlockedError(RuntimeError):
@@ -96,13 +129,27 @@ class ClockConfig:
     """Device-time span an epoch needs before it can lock (after a reset the offset rests on
     the lowest delay seen since, which takes some arrivals to find)."""
     max_uncertainty_ns: float = 200_000.0
-    """An epoch is locked while the uncertainty at its newest point stays below this."""
+    """An epoch locks once the uncertainty at its newest point is below this."""
+    unlock_factor: float = 10.0
+    """A locked epoch unlocks only if its uncertainty exceeds this many ``max_uncertainty_ns``."""
+    prune_margin_ns: int = 1_000_000
+    """Buckets above a later one by more than this (plus ``max_drift`` times their distance)
+    are dropped from the fit: they cannot touch the envelope (a backlog read in a burst)."""
     max_drift: float = 1e-3
     """Largest |drift| searched for (1e-3 = 1000 ppm); also the slope uncertainty before a fit."""
+    typical_drift: float = 100e-6
+    """Scale of a device clock's drift (crystals: tens of ppm): the prior of the first epoch's
+    slope is 0 with this uncertainty, so a slope from little data is shrunk towards 0."""
     jump_tolerance_ns: int = 2_000_000
-    """Arrivals further below the line than this (plus 3 sigma) restart the fit."""
+    """An arrival further below a locked line than this (plus 3 sigma) is a causality
+    violation: a new epoch if it dropped there at once (clock jump), else a re-anchored fit."""
+    reanchor_tolerance_ns: int = 500_000
+    """An arrival further below a locked line than this (plus 3 sigma), short of a clock jump,
+    means the fit locked on a raised delay floor: it is re-anchored (same epoch)."""
     persist_ns: int = 500_000_000
-    """Arrivals above the line by more than the jump tolerance for this long restart the fit."""
+    """After device time went back (by less than ``reorder_tolerance_ns``), arrivals late by more
+    than the jump tolerance for this long mean the device clock stepped back; device time not
+    advancing for this long (host time) means it stopped. Either restarts the fit."""
     reorder_tolerance_ns: int = 50_000_000
     """Device time may go back by this much (reordered datagrams) without meaning a reset."""
     eval_fraction: float = 0.5
@@ -123,8 +170,12 @@ class ClockConfig:
             raise ValueError("ClockConfig.eval_fraction must be in [0, 1]")
         if not 0.0 < self.max_drift < 0.1:
             raise ValueError("ClockConfig.max_drift must be in (0, 0.1)")
+        if not 0.0 < self.typical_drift <= self.max_drift:
+            raise ValueError("ClockConfig.typical_drift must be in (0, max_drift]")
         if self.min_points < 2:
             raise ValueError("ClockConfig.min_points must be >= 2")
+        if self.unlock_factor < 1.0 or self.prune_margin_ns < 0:
+            raise ValueError("ClockConfig: unlock_factor must be >= 1, prune_margin_ns >= 0")
 
 
 @dataclass(frozen=True, slots=True)
@@ -169,6 +220,7 @@ class ClockMapper:
         self._b1 = 0
         self.epoch = -1
         self.n_resets = 0
+        self.n_reanchors = 0
         self.n_fed = 0
         self._old: dict[int, _Line] = {}
         # Drift kept from the previous epoch: (drift, its uncertainty, span (ns) it was fitted on).
@@ -189,21 +241,31 @@ class ClockMapper:
         self._ox = 0.0
         self._or = 0.0
         self._last_fit_x = -(1 << 62)
+        self._ever_locked = False
+        self._fit_span = 0.0  # device-time span (ns) the current slope rests on
+        # Arrivals late by more than the tolerance since device time went back (a step back?).
         self._excess: list[tuple[int, int]] = []
+        self._back_from = 0  # newest device time before the first of them
+        # Consecutive arrivals whose device time did not advance, and the host time of the first.
+        self._stuck_n = 0
+        self._stuck_y0 = 0
+        self._recent: deque[tuple[int, int]] = deque(maxlen=_RECENT)
         # Recent half-differences of the split estimates: value at x_e (ns), slope.
         self._u_hist: deque[tuple[float, float]] = deque(maxlen=_U_HISTORY)
+
+    def _keep_drift(self) -> None:
+        """Remember the current line's drift for a fresh fit (same oscillator)."""
+        line = self._line
+        if line is None or not self._ever_locked or not self.config.keep_drift_on_reset:
+            return
+        self._prior = (line.d, line.u_slope, self._fit_span)
 
     def _start_epoch(self, x: int, y: int) -> None:
         if self._line is not None and self.epoch >= 0:
             self._old[self.epoch] = self._line
             while len(self._old) > self.config.max_epochs_kept:
                 del self._old[min(self._old)]
-        if self._line is not None and self.config.keep_drift_on_reset and self._line.locked:
-            # Same oscillator after a restart: its drift is still known.
-            span = float(self._x_last - self._x_first)
-            if self._prior is not None and self._line.d == self._prior[0]:
-                span = max(span, self._prior[2])  # the epoch never refitted the drift
-            self._prior = (self._line.d, self._line.u_slope, span)
+        self._keep_drift()
         self.epoch += 1
         self._line = None
         self._begin_state()
@@ -234,33 +296,65 @@ class ClockMapper:
         if x < self._x_last - cfg.reorder_tolerance_ns:
             self._restart(x, y, f"device time went back by {(self._x_last - x) / 1e6:.3f} ms")
             return self.epoch
+        back = x < self._x_last
+        if x <= self._x_last:
+            # Device time not advancing while records keep coming: the device clock stopped
+            # (a stalled receiver delivers late records, but their device times still advance).
+            if self._stuck_n == 0:
+                self._stuck_y0 = y
+            self._stuck_n += 1
+            if self._stuck_n >= 5 and y - self._stuck_y0 >= cfg.persist_ns:
+                self._restart(
+                    x,
+                    y,
+                    f"device time did not advance for {(y - self._stuck_y0) / 1e9:.3f} s "
+                    "(device clock stopped)",
+                )
+                return self.epoch
+        else:
+            self._stuck_n = 0
         line = self._line
         if line is not None:
             dx = float(x - self._x_ref)
             gap = float(y - self._y_ref) - dx - line.rel(dx)
-            tol = cfg.jump_tolerance_ns + 3.0 * line.uncertainty1(dx)
-            if gap < -tol:
-                self._restart(
-                    x, y, f"arrival {-gap / 1e6:.3f} ms before its send time (device clock jumped)"
-                )
+            u3 = 3.0 * line.uncertainty1(dx)
+            tol = cfg.jump_tolerance_ns + u3
+            if gap < -(cfg.reanchor_tolerance_ns + u3) and self._ever_locked:
+                # Received before it was sent, by a line that has been trusted: either the device
+                # clock jumped forward, or the delay floor is lower than the line says.
+                if gap < -tol and self._abrupt(line, gap, tol):
+                    self._restart(
+                        x,
+                        y,
+                        f"arrival {-gap / 1e6:.3f} ms before its send time (device clock "
+                        "jumped forward)",
+                    )
+                    return self.epoch
+                self._reanchor(x, y, gap)
                 return self.epoch
-            if gap > tol:
+            if self._excess and len(self._excess) == 1 and self._straggler(x):
+                self._excess = []  # the one that went back was a reordered record
+            if gap > tol and (self._excess or back):
+                # Late by more than the tolerance ever since device time went back (and the
+                # records after continued from there): the device clock stepped back, by less
+                # than the reorder tolerance. Lateness alone is no evidence: a receiver starved
+                # of CPU or under load delivers late records too.
+                if not self._excess:
+                    self._back_from = self._x_last
                 self._excess.append((x, y))
                 x0, y0 = self._excess[0]
-                # Host time too, so that a frozen device clock also ends here (and the list
-                # stays bounded).
                 if len(self._excess) >= 5 and max(x - x0, y - y0) >= cfg.persist_ns:
                     pts = self._excess
                     self._restart(
-                        pts[0][0],
-                        pts[0][1],
-                        f"arrivals late by > {tol / 1e6:.3f} ms for {cfg.persist_ns / 1e9:.3f} s "
-                        "(device clock stepped back or transport delay rose)",
+                        x0,
+                        y0,
+                        f"device time went back and arrivals stayed late by > {tol / 1e6:.3f} ms "
+                        f"for {cfg.persist_ns / 1e9:.3f} s (device clock stepped back)",
                     )
                     for px, py in pts[1:]:
                         self._add(px, py)
                     return self.epoch
-            elif self._excess:
+            elif gap <= tol and self._excess:
                 self._excess = []
         self._add(x, y)
         return self.epoch
@@ -275,6 +369,27 @@ class ClockMapper:
             count=xs.shape[0],
         )
 
+    def _straggler(self, x: int) -> bool:
+        """Whether the arrival that went back (``_excess[0]``) was a reordered record: the next
+        one (device time ``x``) continues from the newest device time before it, not from it.
+        The record period is the median step of the recent arrivals."""
+        xs = [px for px, _ in self._recent]
+        steps = [b - a for a, b in itertools.pairwise(xs) if b > a]
+        period = float(np.median(steps)) if steps else 0.0
+        x_back = self._excess[0][0]
+        return abs(x - self._back_from - period) <= abs(x - x_back - period)
+
+    def _abrupt(self, line: _Line, gap: float, tol: float) -> bool:
+        """Whether an arrival ``gap`` below ``line`` dropped there at once: by more than ``tol``
+        below the lowest of the recent arrivals. Arrivals in order can only come down by the
+        device time between them, so a backlog draining or a load ending descends in steps of
+        at most one record period; a clock jump drops by its size at once."""
+        lowest = math.inf
+        for px, py in self._recent:
+            dx = float(px - self._x_ref)
+            lowest = min(lowest, float(py - self._y_ref) - dx - line.rel(dx))
+        return gap < lowest - tol
+
     def _restart(self, x: int, y: int, why: str) -> None:
         logger.warning("%s: clock fit restarted at epoch %d: %s", self.name, self.epoch + 1, why)
         self.n_resets += 1
@@ -282,9 +397,29 @@ class ClockMapper:
         self._start_epoch(x, y)
         self._add(x, y)
 
+    def _reanchor(self, x: int, y: int, gap: float) -> None:
+        """The delay floor came down below a trusted line (the fit locked while every arrival
+        was late, e.g. under load at start-up): refit from here in the same epoch, keeping the
+        drift and the lock. Records of the epoch are then mapped with the lower line."""
+        logger.info(
+            "%s: delay floor %.3f ms below the line: fit re-anchored (epoch %d)",
+            self.name,
+            -gap / 1e6,
+            self.epoch,
+        )
+        self.n_reanchors += 1
+        self._keep_drift()
+        self._b0 = self._b1 = 0
+        self._ob = -1
+        self._last_fit_x = -(1 << 62)
+        self._excess = []
+        self._u_hist.clear()
+        self._add(x, y)
+
     def _add(self, x: int, y: int) -> None:
         cfg = self.config
         self._n += 1
+        self._recent.append((x, y))
         if x > self._x_last or self._n == 1:
             self._x_last = x
         dxi = x - self._x_ref
@@ -321,6 +456,35 @@ class ClockMapper:
 
     # ------------------------------------------------------------------ fitting
 
+    def _prune(self) -> None:
+        """Drop the stored buckets that a later bucket makes irrelevant.
+
+        Bucket ``i`` can never touch a line of slope within ``+-max_drift`` that passes below a
+        later bucket ``j`` once ``r_i >= r_j + max_drift * (x_j - x_i) + prune_margin_ns``, so
+        dropping it leaves the fit unchanged. What it removes is a backlog read in a burst
+        (device time advancing much faster than host time: each record lower than the one
+        before), which would otherwise count towards the span of the data and pull the point
+        where the line is evaluated into a stretch where the envelope is undetermined.
+        """
+        b0, b1 = self._b0, self._b1
+        if b1 - b0 < 1 or self._ob < 0:
+            return
+        m = self.config.max_drift
+        bx = self._bx[b0:b1]
+        br = self._br[b0:b1]
+        key = br + m * bx
+        later = np.empty_like(key)
+        later[-1] = self._or + m * self._ox
+        if key.shape[0] > 1:
+            later[:-1] = np.minimum.accumulate(key[:0:-1])[::-1]
+            np.minimum(later[:-1], later[-1], out=later[:-1])
+        keep = key < later + float(self.config.prune_margin_ns)
+        if not keep.all():
+            k = int(np.count_nonzero(keep))
+            bx[:k] = bx[keep]
+            br[:k] = br[keep]
+            self._b1 = b0 + k
+
     def _points(self) -> tuple[FloatArray, FloatArray]:
         X = np.append(self._bx[self._b0 : self._b1], self._ox)
         R = np.append(self._br[self._b0 : self._b1], self._or)
@@ -329,6 +493,7 @@ class ClockMapper:
     def _refit(self) -> None:
         cfg = self.config
         self._last_fit_x = self._x_last
+        self._prune()
         X, R = self._points()
         n = X.shape[0]
         span = float(X.max() - X.min())
@@ -337,56 +502,103 @@ class ClockMapper:
         need = float(cfg.min_span_ns)
         if self._prior is not None:
             need = max(need, min(self._prior[2], 0.5 * cfg.window_ns))
-        full = span >= need and n >= 6
-        if full:
-            x_e = float(X.min()) + cfg.eval_fraction * span
-            lo, hi = -cfg.max_drift, cfg.max_drift
-            d = _support_slope(X, R, x_e, lo, hi)
-            a = float((R - d * X).min())
-            # Uncertainty: the same estimator on the even and on the odd buckets gives two
-            # independent half-data estimates; half their difference is of the order of the
-            # full estimate's error whatever the delay distribution.
-            d1 = _support_slope(X[0::2], R[0::2], x_e, lo, hi)
-            d2 = _support_slope(X[1::2], R[1::2], x_e, lo, hi)
-            v1 = float((R[0::2] - d1 * X[0::2]).min()) + d1 * x_e
-            v2 = float((R[1::2] - d2 * X[1::2]).min()) + d2 * x_e
-            dv, dd = 0.5 * (v1 - v2), 0.5 * (d1 - d2)
+        if span >= need and n >= 6:
+            d, a, x_e, u0, u_slope = self._fit_slope(X, R, span)
+            self._fit_span = span
         else:
-            d, u_prior, _ = self._prior if self._prior is not None else (0.0, cfg.max_drift, 0.0)
+            d, u_prior, self._fit_span = (
+                self._prior if self._prior is not None else (0.0, cfg.typical_drift, 0.0)
+            )
             G = R - d * X
             i0 = int(np.argmin(G))
             a = float(G[i0])
             x_e = float(X[i0])
-            dv = 0.5 * float(G[0::2].min() - G[1::2].min()) if n >= 2 else math.inf
-            dd = u_prior
-        if not math.isfinite(dv):
-            u0, u_slope = math.inf, cfg.max_drift
-        elif not full:
-            # Offset only: the estimate sharpens quickly with every point, so no smoothing.
-            u0, u_slope = abs(dv), dd
-        else:
-            # Windowed RMS: one split is a noisy scale; old (early, poor) fits drop out.
-            self._u_hist.append((dv * dv, dd * dd))
-            u0 = math.sqrt(sum(h[0] for h in self._u_hist) / len(self._u_hist))
-            u_slope = math.sqrt(sum(h[1] for h in self._u_hist) / len(self._u_hist))
+            # Offset only: the estimate sharpens quickly with every point, so no smoothing. (A
+            # re-anchored fit starts from one point below a line that was good: no worse.)
+            if n >= 2:
+                u0 = abs(0.5 * float(G[0::2].min() - G[1::2].min()))
+            elif self._ever_locked and self._line is not None:
+                u0 = self._line.u0
+            else:
+                u0 = math.inf
+            u_slope = u_prior if math.isfinite(u0) else cfg.max_drift
         line = _Line(self._x_ref, self._y_ref, a, d, x_e, u0, u_slope, False)
-        dx_last = float(self._x_last - self._x_ref)
-        locked = (
-            self._n >= cfg.min_points
-            and self._x_last - self._x_first >= cfg.min_lock_span_ns
-            and math.isfinite(u0)
-            and line.uncertainty1(dx_last) <= cfg.max_uncertainty_ns
-        )
-        was_locked = self._line is not None and self._line.locked
+        u_last = line.uncertainty1(float(self._x_last - self._x_ref))
+        if self._ever_locked:
+            # Hysteresis: a lock is not dropped for an uncertainty that wavers around the limit.
+            locked = u_last <= cfg.unlock_factor * cfg.max_uncertainty_ns
+        else:
+            locked = (
+                self._n >= cfg.min_points
+                and span >= cfg.min_lock_span_ns
+                and u_last <= cfg.max_uncertainty_ns
+            )
         self._line = _Line(self._x_ref, self._y_ref, a, d, x_e, u0, u_slope, locked)
-        if locked and not was_locked:
+        if locked and not self._ever_locked:
+            self._ever_locked = True
             logger.info(
                 "%s: locked (epoch %d, drift %.2f ppm, uncertainty %.1f us)",
                 self.name,
                 self.epoch,
                 d * 1e6,
-                line.uncertainty1(dx_last) / 1e3,
+                u_last / 1e3,
             )
+
+    def _fit_slope(
+        self, X: FloatArray, R: FloatArray, span: float
+    ) -> tuple[float, float, float, float, float]:
+        """Offset and drift from the window: ``(d, a, x_e, u0, u_slope)``."""
+        cfg = self.config
+        lo, hi = -cfg.max_drift, cfg.max_drift
+
+        def clipped(v: float) -> bool:  # a slope at the end of the range: undetermined
+            return abs(v) >= cfg.max_drift * (1.0 - 1e-9)
+
+        f = cfg.eval_fraction
+        x0 = float(X.min())
+        x_e = x0 + f * span
+        d = _support_slope(X, R, x_e, lo, hi)
+        # Uncertainty: the same estimator on the even and on the odd buckets gives two
+        # independent half-data estimates; half their difference is of the order of the full
+        # estimate's error whatever the delay distribution. Windowed RMS: one split is a noisy
+        # scale; old (early, poor) fits drop out.
+        d1 = _support_slope(X[0::2], R[0::2], x_e, lo, hi)
+        d2 = _support_slope(X[1::2], R[1::2], x_e, lo, hi)
+        v1 = float((R[0::2] - d1 * X[0::2]).min()) + d1 * x_e
+        v2 = float((R[1::2] - d2 * X[1::2]).min()) + d2 * x_e
+        dv = 0.5 * (v1 - v2)
+        dd = cfg.max_drift if clipped(d1) or clipped(d2) else 0.5 * (d1 - d2)
+        self._u_hist.append((dv * dv, dd * dd))
+        u0 = math.sqrt(sum(h[0] for h in self._u_hist) / len(self._u_hist))
+        u_slope = math.sqrt(sum(h[1] for h in self._u_hist) / len(self._u_hist))
+        # What was known before these data: the drift of the previous epoch or fit (same
+        # oscillator), else 0 with the typical drift as its scale.
+        if self._prior is not None:
+            pd, pu = self._prior[0], self._prior[1]
+        else:
+            pd, pu = 0.0, cfg.typical_drift
+        pu = max(pu, 0.01 * cfg.typical_drift)
+        # The lower envelope is a straight line only where the delay floor is reached. When
+        # every arrival of a stretch reaching one end of the window is late (sustained load
+        # longer than the rest of the window), the hull edge spanning x_e tilts towards it.
+        # The edges spanning the quartiles then disagree by more than the noise: the data do
+        # not determine the drift, so it stays where it was (a clock's drift changes slowly).
+        xq = (x0 + max(f - 0.25, 0.0) * span, x0 + min(f + 0.25, 1.0) * span)
+        dq = (_support_slope(X, R, xq[0], lo, hi), _support_slope(X, R, xq[1], lo, hi))
+        if abs(dq[0] - dq[1]) > max(6.0 * u_slope, 0.01 * cfg.typical_drift):
+            ref = self._line.d if self._line is not None else pd
+            G = R - ref * X
+            i0 = int(np.argmin(G))
+            u_ref = self._line.u_slope if self._line is not None else pu
+            return ref, float(G[i0]), float(X[i0]), u0, u_ref
+        # Combine with the prior (inverse-variance weights): a slope from a short or noisy
+        # stretch then counts for little, and one at the end of the search range for nothing.
+        us = cfg.max_drift if clipped(d) else u_slope
+        w = pu * pu / (us * us + pu * pu)
+        d = pd + w * (d - pd)
+        u_slope = us * pu / math.sqrt(us * us + pu * pu)
+        a = float((R - d * X).min())
+        return d, a, x_e, u0, u_slope
 
     # ------------------------------------------------------------------ mapping
 
@@ -401,7 +613,8 @@ class ClockMapper:
 
     @property
     def locked(self) -> bool:
-        """True while the current epoch maps within ``max_uncertainty_ns``."""
+        """True once the current epoch mapped within ``max_uncertainty_ns``, and as long as it
+        maps within ``unlock_factor`` times that."""
         return self._line is not None and self._line.locked and self._n > 0
 
     def is_locked(self, epoch: int | None = None) -> bool:
@@ -464,6 +677,7 @@ class ClockMapper:
             "points": self._n,
             "span_s": span,
             "resets": self.n_resets,
+            "reanchors": self.n_reanchors,
         }
 
 

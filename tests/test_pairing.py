@@ -368,6 +368,59 @@ def test_sensor_reset_and_wrap_lose_only_the_outage() -> None:
     assert np.sqrt(np.mean(err**2)) < 20e-6
 
 
+def starve(
+    cell: Cell,
+    stalls: tuple[tuple[float, float], ...],
+    loads: tuple[tuple[float, float], ...],
+    seed: int = 0,
+) -> None:
+    """Re-time the profiles and robot states as read by one process short of CPU: each stream in
+    order, one record at a time; nothing read during a stall (then a burst), 1-5 ms late
+    wake-ups under load. Episodes in seconds after T0, shared by both streams."""
+    rng = np.random.default_rng(seed)
+
+    def within(t: int, episodes: tuple[tuple[float, float], ...]) -> int:
+        for a, b in episodes:
+            if T0 + a * S <= t < T0 + b * S:
+                return int(T0 + b * S)
+        return -1
+
+    for kind in (Profile, RobotState):
+        stream = sorted((e for e in cell.events if isinstance(e[1], kind)), key=lambda e: e[0])
+        done = T0
+        for arrival, rec in stream:
+            t = max(arrival, done)
+            if arrival > done and within(arrival, loads) >= 0:
+                t += int(rng.uniform(1 * MS, 5 * MS))
+            while (end := within(t, stalls)) >= 0:
+                t = end
+            rec.host_time_ns = t  # type: ignore[attr-defined]
+            done = t + 30_000
+    cell.events = [(r.host_time_ns, r) for _, r in cell.events]  # type: ignore[attr-defined]
+
+
+def test_receiver_short_of_cpu_loses_no_profile_to_the_clocks() -> None:
+    # 0.3 s of records queued before reading starts, a 0.7 s stall during 2 s of load, another
+    # stall: the clocks lock within the wait bound and stay locked; nothing is dropped.
+    cell = make_cell(seconds=4.0, seed=5)
+    starve(cell, stalls=((-1.0, 0.3), (0.8, 1.5), (2.2, 2.3)), loads=((1.2, 3.2),))
+    run = Run(Pairer(config()))
+    run.feed(cell.sorted())
+    run.finish(now_ns=T0 + 6 * S)
+    p = run.p
+    assert p.sensor_clock(1).n_resets == 0 and p.robot_clock.n_resets == 0
+    clock_drops = ("clock_unlocked", "robot_clock_unlocked")
+    assert all(p.dropped[k] == 0 for k in clock_drops), p.dropped
+    # Only the last ones, exposed after the last robot sample, are dropped (timeout).
+    assert p.received == 4000 and p.paired >= 3995, p.dropped
+    fc, ex, F = run.frames()
+    e_true = np.array([cell.exposure[int(j)] for j in fc])
+    # Through 2 s of load the lines rest on the drift learnt in the 1 s before: tens of us.
+    dt = (ex - e_true)[e_true > T0 + S // 2].astype(np.float64)
+    assert np.sqrt(np.mean(dt**2)) < 50_000 and np.max(np.abs(dt)) < 150_000
+    assert np.max(pose_errors(cell, fc, F)) < 60e-6
+
+
 @pytest.mark.parametrize("reason", DROP_REASONS)
 def test_drop_reasons_are_counted_from_zero(reason: str) -> None:
     assert Pairer().dropped[reason] == 0
