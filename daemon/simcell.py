@@ -50,6 +50,7 @@ def cell_spec(cfg: Config, **sensor_overrides: Any) -> CellSpec:
         version=(c.version[0], c.version[1], c.version[2], c.version[3]),
         serial_number=c.serial_number,
         repeatability_m=c.repeatability_m,
+        primary_interface=True,  # so use_factory_kinematics works against the simulated arm
     )
     if c.q0_rad is not None:
         controller = dataclasses.replace(controller, initial_q=tuple(c.q0_rad))
