@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .config import Config
-from .devices import Devices, make_devices, pairer_config
+from .devices import Devices, make_devices, pairer_config, robot_model
 from .pairing import PairedBatch, Pairer
 from .pipeline import AlignmentSetup, Pipeline, PipelineSettings
 
@@ -138,21 +138,17 @@ class Acquisition:
     def __init__(self, cfg: Config, devices: Devices | None = None) -> None:
         self.cfg = cfg
         self.devices = devices or make_devices(cfg)
-        pcfg = pairer_config(cfg)
-        self._use_table = pcfg.use_table
         self._recordings: list[Recording] = []
         self._lock = threading.Lock()
-        self.pipeline = Pipeline(
-            self.devices.sensor,
-            self.devices.robot,
-            Pairer(pcfg),
-            AlignmentSetup(sensor2flange=np.eye(4), calibrated=False),
-            None,
-            table=self.devices.table if pcfg.use_table else None,
-            settings=PipelineSettings(batch_s=cfg.pipeline.batch_s),
-            on_batch=self._offer,
-        )
+        self._pipeline: Pipeline | None = None
         self._open = False
+
+    @property
+    def pipeline(self) -> Pipeline:
+        """The recording pipeline (exists once the acquisition is open)."""
+        if self._pipeline is None:
+            raise RuntimeError("the acquisition is not open")
+        return self._pipeline
 
     @property
     def robot(self) -> Any:
@@ -172,7 +168,19 @@ class Acquisition:
     def open(self) -> Acquisition:
         if not self._open:
             self.devices.open()
-            self.pipeline.start()
+            # The pairer needs the kinematic model, which the robot driver may read at open().
+            pcfg = pairer_config(self.cfg, robot_model(self.cfg, self.devices))
+            self._pipeline = Pipeline(
+                self.devices.sensor,
+                self.devices.robot,
+                Pairer(pcfg),
+                AlignmentSetup(sensor2flange=np.eye(4), calibrated=False),
+                None,
+                table=self.devices.table if pcfg.use_table else None,
+                settings=PipelineSettings(batch_s=self.cfg.pipeline.batch_s),
+                on_batch=self._offer,
+            )
+            self._pipeline.start()
             self._open = True
         return self
 
@@ -180,6 +188,7 @@ class Acquisition:
         if self._open:
             self._open = False
             self.pipeline.stop(drain=False)
+            self._pipeline = None
             self.devices.close()
 
     def __enter__(self) -> Acquisition:

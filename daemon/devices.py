@@ -15,7 +15,7 @@ from .clockmap import ClockConfig
 from .config import Config, PluginSensorConfig
 from .pairing import PairerConfig
 
-__all__ = ["Devices", "make_devices", "pairer_config"]
+__all__ = ["Devices", "make_devices", "pairer_config", "robot_model"]
 
 log = logging.getLogger(__name__)
 
@@ -105,6 +105,17 @@ def make_devices(cfg: Config) -> Devices:
                 timeout_s=t.timeout_s,
             )
     return Devices(sensor=sensor, robot=robot, table=table)
+
+
+def robot_model(cfg: Config, devices: Devices) -> str | kinematics.DHParams:
+    """The kinematic model to pair with: the robot's factory calibration when the configuration
+    asks for it and the driver read it at ``open()``, else the nominal model."""
+    if cfg.robot.use_factory_kinematics:
+        read = getattr(devices.robot, "kinematic_model", None)
+        model = read() if callable(read) else None
+        if isinstance(model, kinematics.DHParams):
+            return model
+    return cfg.robot.model
 
 
 def pairer_config(cfg: Config, model: str | kinematics.DHParams | None = None) -> PairerConfig:

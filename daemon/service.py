@@ -28,7 +28,7 @@ from .calibfile import (
     read_calibration,
 )
 from .config import Config, ConfigError, load_config
-from .devices import Devices, make_devices, pairer_config
+from .devices import Devices, make_devices, pairer_config, robot_model
 from .notify import Notifier, Watchdog
 from .pairing import Pairer
 from .pipeline import AlignmentSetup, Pipeline, PipelineSettings
@@ -127,7 +127,7 @@ class Service:
             stats=lambda: self.pipeline.stats() if self.pipeline else {},
         )
         pl = cfg.pipeline
-        pcfg = pairer_config(cfg)
+        pcfg = pairer_config(cfg, robot_model(cfg, devices))
         pipeline = Pipeline(
             devices.sensor,
             devices.robot,
