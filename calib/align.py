@@ -166,8 +166,8 @@ def _align_points(
     A = np.ascontiguousarray(poses[:, :3, 1:4].transpose(0, 2, 1))
     run = _regular_run(idx)
     out, finite = _eval_regular(ya, za, idx, A, run) if run else _eval_general(ya, za, idx, A)
-    if m is not None:
-        out = out[m]
+    if m is not None and not bool(m.all()):
+        out = _keep_rows(out, m)
     # The poses are finite, so only non-finite inputs (checked per block, in cache) can give a
     # non-finite point; the full test on the kept rows runs only then.
     if not finite:
@@ -178,6 +178,14 @@ def _align_points(
                 f"{bad[0]}); mark invalid points with mask"
             )
     return out
+
+
+def _keep_rows(out: FloatArray, m: NDArray[np.bool_]) -> FloatArray:
+    """``out[m]`` for a C-contiguous (N, 3) float64 array, several times faster: each row is
+    moved as one 24-byte item instead of going through numpy's row-wise boolean indexing."""
+    rows = out.view(np.dtype((np.void, 24))).reshape(-1)
+    kept: FloatArray = rows[m].view(np.float64).reshape(-1, 3)
+    return kept
 
 
 def _all_finite(a: FloatArray) -> bool:

@@ -80,6 +80,20 @@ _REASON_OF: dict[int, str] = {
     _D_ENC_GAP: "encoder_gap_too_large",
 }
 
+
+def _status_of(**codes: int) -> IntArray:
+    """Lookup table ``Reason`` -> status code (``np.select`` costs ~0.3 ms a call: per poll)."""
+    table = np.full(max(Reason) + 1, _READY, dtype=np.int64)
+    for name, code in codes.items():
+        table[Reason[name]] = code
+    return table
+
+
+_ROBOT_STATUS = _status_of(NOT_YET=_W_ROBOT, BEFORE_BUFFER=_D_BEFORE, GAP=_D_GAP)
+_TABLE_STATUS = _status_of(NOT_YET=_W_TABLE, BEFORE_BUFFER=_D_TABLE_BEFORE, GAP=_D_TABLE_GAP)
+_ENCODER_STATUS = _status_of(NOT_YET=_W_ENCODER, BEFORE_BUFFER=_D_ENC_BEFORE)
+"""Encoder mode: a gap between counts is no reason by itself (the time gap is checked)."""
+
 DROP_REASONS: tuple[str, ...] = (
     *sorted(set(_REASON_OF.values())),
     "no_encoder_count",
@@ -404,12 +418,7 @@ class Pairer:
         self, t_robot: IntArray, status: IntArray, m: IntArray, F: FloatArray
     ) -> None:
         T, _, reason = self.robot.interpolate(t_robot)
-        st = np.select(
-            [reason == Reason.NOT_YET, reason == Reason.BEFORE_BUFFER, reason == Reason.GAP],
-            [_W_ROBOT, _D_BEFORE, _D_GAP],
-            _READY,
-        )
-        status[m] = st
+        status[m] = _ROBOT_STATUS[reason]
         F[m] = T
 
     def _pair_robot_clock(self, status: IntArray, exposure: IntArray, F: FloatArray) -> None:
@@ -430,11 +439,7 @@ class Pairer:
             count = unwrap_nearest(x, self._enc_last, cfg.encoder_modulus)
         i, s, reason = self.encoder.locate(count)
         V = self.encoder.values[:, 0]
-        st = np.select(
-            [reason == Reason.NOT_YET, reason == Reason.BEFORE_BUFFER],
-            [_W_ENCODER, _D_ENC_BEFORE],
-            _READY,
-        )
+        st = _ENCODER_STATUS[reason]
         ok = st == _READY
         t_robot = np.zeros(x.shape[0], dtype=np.int64)
         if np.any(ok):
@@ -464,11 +469,7 @@ class Pairer:
         else:
             t = exposure[m]
         v, _, reason = self.table.interpolate(t)
-        status[m] = np.select(
-            [reason == Reason.NOT_YET, reason == Reason.BEFORE_BUFFER, reason == Reason.GAP],
-            [_W_TABLE, _D_TABLE_BEFORE, _D_TABLE_GAP],
-            _READY,
-        )
+        status[m] = _TABLE_STATUS[reason]
         angle[m] = v
 
     def _batch(

@@ -15,10 +15,10 @@ marks the pipeline failed, which the service turns into a non-zero exit (systemd
 from __future__ import annotations
 
 import logging
-import queue
+import sys
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Generic, TypeVar
@@ -59,21 +59,34 @@ class PipelineSettings:
     status_period_s: float = 1.0
     publish_intensity: bool = False
     publish_profile_index: bool = False
+    gil_switch_interval_s: float | None = 0.0005
+    """Python's thread switch interval while the pipeline runs (None: leave it). The readers
+    stamp each record with the host time when they get the GIL back after the receive call;
+    with Python's default 5 ms a busy worker delays those stamps by up to 5 ms, which the
+    sensor clock fit sees as transport jitter (its jump tolerance is 2 ms)."""
 
 
 class _Reader(Generic[T]):
-    """A thread that moves records from a driver into a bounded queue."""
+    """A thread that moves records from a driver into a bounded queue.
+
+    The queue is a ``deque`` with one producer (this thread) and one consumer (the worker):
+    ``append`` and ``popleft`` are atomic, so no lock or condition is needed per record (a
+    ``queue.Queue`` costs both on each side, thousands of times a second). The bound is checked
+    before appending; the consumer only ever shortens the deque, so it is never exceeded.
+    """
 
     def __init__(
         self,
         name: str,
         device: Device[T],
-        sink: queue.Queue[T],
+        sink: deque[T],
+        maxsize: int,
         on_drop: Callable[[], None],
         on_fail: Callable[[BaseException], None],
     ) -> None:
         self.device = device
         self.sink = sink
+        self.maxsize = maxsize
         self._on_drop = on_drop
         self._on_fail = on_fail
         self._stop = threading.Event()
@@ -90,10 +103,11 @@ class _Reader(Generic[T]):
         self.thread.join(timeout)
 
     def _run(self) -> None:
+        sink, maxsize, read = self.sink, self.maxsize, self.device.read
         try:
             while not self._stop.is_set():
                 try:
-                    rec = self.device.read(timeout=0.05)
+                    rec = read(timeout=0.05)
                 except DriverError as exc:
                     # The driver reconnects by itself; back off a little and keep going.
                     self.errors += 1
@@ -102,9 +116,9 @@ class _Reader(Generic[T]):
                     continue
                 if rec is None:
                     continue
-                try:
-                    self.sink.put_nowait(rec)
-                except queue.Full:
+                if len(sink) < maxsize:
+                    sink.append(rec)
+                else:
                     self._on_drop()
         except BaseException as exc:
             log.exception("%s reader failed", self.device.kind)
@@ -137,29 +151,35 @@ class Pipeline:
         self._publish_status = publish_status
         self._on_batch = on_batch
         s = self.settings
-        self._profiles: queue.Queue[Profile] = queue.Queue(s.profile_queue)
-        self._robot_q: queue.Queue[RobotState] = queue.Queue(s.state_queue)
-        self._table_q: queue.Queue[TableState] = queue.Queue(s.state_queue)
+        self._profiles: deque[Profile] = deque()
+        self._robot_q: deque[RobotState] = deque()
+        self._table_q: deque[TableState] = deque()
         self.dropped: Counter[str] = Counter()
         self.published_profiles = 0
         self.published_points = 0
         self.published_batches = 0
         self.robot_states_dropped = 0
         self._lock = threading.Lock()
+        # Held by the worker while it drains, pairs and publishes one tick, and by stats(): the
+        # counters it reads then add up exactly (no profile is half-way between two of them).
+        self._tick_lock = threading.Lock()
         self._stop = threading.Event()
         self._failure: BaseException | None = None
         self._last_progress_ns = time.monotonic_ns()
         self._utc_offset_ns = time.time_ns() - time.monotonic_ns()
         self._readers: list[_Reader[Any]] = [
-            _Reader("sensor", sensor, self._profiles, self._drop_profile, self._fail),
-            _Reader("robot", robot, self._robot_q, self._drop_state, self._fail),
+            _Reader(
+                "sensor", sensor, self._profiles, s.profile_queue, self._drop_profile, self._fail
+            ),
+            _Reader("robot", robot, self._robot_q, s.state_queue, self._drop_state, self._fail),
         ]
         if table is not None:
             self._readers.append(
-                _Reader("table", table, self._table_q, self._drop_state, self._fail)
+                _Reader("table", table, self._table_q, s.state_queue, self._drop_state, self._fail)
             )
         self._worker = threading.Thread(target=self._work, name="pipeline-worker", daemon=True)
         self._started = False
+        self._saved_switch_interval: float | None = None
         self.latency_ns: list[int] = []
 
     # --- counters and health ----------------------------------------------------------------
@@ -187,21 +207,27 @@ class Pipeline:
         return (time.monotonic_ns() - self._last_progress_ns) < stall_s * 1e9
 
     def stats(self) -> dict[str, Any]:
-        """Counters (JSON-friendly). ``received == published + sum(dropped) + pending``."""
-        p = self.pairer.stats()
-        with self._lock:
-            dropped = dict(self.dropped)
+        """Counters (JSON-friendly). ``received == published + sum(dropped) + pending``, exactly:
+        ``received`` counts the profiles the sensor reader handed to the pipeline (the driver's
+        own count, in ``sensor``, may be ahead by the one record the reader holds)."""
+        with self._tick_lock:
+            p = self.pairer.stats()
+            published = self.published_profiles
+            points, batches = self.published_points, self.published_batches
+            queued = len(self._profiles)
+            with self._lock:
+                dropped = dict(self.dropped)
         for reason, n in dict(p["dropped"]).items():  # type: ignore[call-overload]
             dropped[reason] = dropped.get(reason, 0) + int(n)
-        sensor_received = self.sensor.counters.received
-        pending = int(p["pending"]) + self._profiles.qsize()  # type: ignore[call-overload]
+        received = int(p["received"]) + queued + dropped.get("queue_full", 0)  # type: ignore[call-overload]
+        pending = int(p["pending"]) + queued  # type: ignore[call-overload]
         return {
-            "received": sensor_received,
-            "published": self.published_profiles,
+            "received": received,
+            "published": published,
             "dropped": dropped,
             "pending": pending,
-            "published_points": self.published_points,
-            "published_batches": self.published_batches,
+            "published_points": points,
+            "published_batches": batches,
             "robot_states": self.robot.counters.received,
             "robot_states_dropped": self.robot_states_dropped,
             "sensor": self.sensor.health().counters.as_dict(),
@@ -240,6 +266,10 @@ class Pipeline:
 
     # --- life cycle -----------------------------------------------------------------------------
     def start(self) -> None:
+        interval = self.settings.gil_switch_interval_s
+        if interval is not None:
+            self._saved_switch_interval = sys.getswitchinterval()
+            sys.setswitchinterval(min(interval, self._saved_switch_interval))
         self._started = True
         for r in self._readers:
             r.start()
@@ -258,25 +288,22 @@ class Pipeline:
         self._stop.set()
         self._worker.join(timeout_s)
         self._started = False
+        if self._saved_switch_interval is not None:
+            sys.setswitchinterval(self._saved_switch_interval)
+            self._saved_switch_interval = None
 
     # --- worker ---------------------------------------------------------------------------------
     def _drain(self) -> None:
         pairer = self.pairer
-        while True:
-            try:
-                pairer.add_robot_state(self._robot_q.get_nowait())
-            except queue.Empty:
-                break
-        while True:
-            try:
-                pairer.add_table_state(self._table_q.get_nowait())
-            except queue.Empty:
-                break
-        while True:
-            try:
-                pairer.add_profile(self._profiles.get_nowait())
-            except queue.Empty:
-                break
+        # States first: the profiles drained after them find their robot samples in place.
+        # Only what is there now: later arrivals wait for the next tick.
+        robot, table, profiles = self._robot_q, self._table_q, self._profiles
+        for _ in range(len(robot)):
+            pairer.add_robot_state(robot.popleft())
+        for _ in range(len(table)):
+            pairer.add_table_state(table.popleft())
+        for _ in range(len(profiles)):
+            pairer.add_profile(profiles.popleft())
 
     def _emit(self, batch: PairedBatch) -> None:
         if self._on_batch is not None:
@@ -319,16 +346,21 @@ class Pipeline:
     def _work(self) -> None:
         period = self.settings.batch_s
         next_status = time.monotonic() + self.settings.status_period_s
+        next_tick = time.monotonic() + period
         try:
             while True:
-                stopping = self._stop.wait(period)
-                self._drain()
-                batches = self.pairer.poll()
-                if stopping:
-                    if getattr(self, "_drain_on_stop", True):
-                        batches.extend(self.pairer.flush())
-                for b in batches:
-                    self._emit(b)
+                # Ticks on a fixed schedule (the work of a tick does not stretch the period,
+                # which would add to every profile's latency); missed ticks are not made up.
+                stopping = self._stop.wait(max(0.0, next_tick - time.monotonic()))
+                next_tick = max(next_tick + period, time.monotonic())
+                with self._tick_lock:
+                    self._drain()
+                    batches = self.pairer.poll()
+                    if stopping:
+                        if getattr(self, "_drain_on_stop", True):
+                            batches.extend(self.pairer.flush())
+                    for b in batches:
+                        self._emit(b)
                 self._last_progress_ns = time.monotonic_ns()
                 if self._publish_status is not None and time.monotonic() >= next_status:
                     next_status += self.settings.status_period_s

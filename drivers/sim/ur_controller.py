@@ -8,8 +8,9 @@ It serves, on one loopback address (any ``127.x.y.z``, so several run side by si
 * the dashboard server on TCP 29999 (:mod:`.dashboard`);
 * the script port on TCP 30003: a program ending in a top-level ``end`` line starts; the
   ``rtde_control`` program that ur_rtde's ``RTDEControlInterface`` uploads is emulated natively
-  (its command-register state machine, below), other programs only have their
-  ``write_output_integer_register`` calls applied.
+  (its command-register state machine, below); other programs have their
+  ``write_output_integer_register`` calls applied and, when they hold motion statements, run a
+  minimal URScript subset (below).
 
 So the real ``rtde_receive.RTDEReceiveInterface`` and ``rtde_control.RTDEControlInterface`` work
 against it unmodified.
@@ -59,6 +60,21 @@ without data), protective stop. Note: after a dropped connection ur_rtde 1.6.5's
 flag), re-uploading the script each time; ``RTDEReceiveInterface`` simply reports
 ``isConnected() == False`` until ``reconnect()``.
 
+Minimal URScript programs
+------------------------
+A program sent to the script port that calls ``movel``, ``movep``, ``movej`` or ``set_tcp`` runs
+those statements in order, one per line (literal arguments only: ``p[...]`` poses, ``[...]``
+joint vectors, numbers, positional or ``a=``/``v=``/``t=``/``r=``): ``set_tcp(p[...])``,
+``movej(q | p[...], a, v, t, r)`` (a pose target is solved for the joints nearest the current
+ones), ``movel(p[...], a, v, t, r)``, ``movep(p[...], a, v, r)``, ``sleep(t)``. Consecutive
+linear moves with a blend radius ``r > 0`` run as one :class:`~.ur_motion.PolylinePath` at the
+first move's speed and acceleration: the blends are approximated by passing through each
+waypoint without stopping (no corner rounding). Other statements (``textmsg``, ``popup``,
+assignments, control flow) are skipped with a log line. The program ends after the last
+statement; a protective stop or an unreachable target stops it as on a robot.
+``state()`` reports the active TCP (``tcp_offset``) and the true TCP pose (``tcp_pose_true``,
+from the true joints) for tests.
+
 Other outputs: ``actual_TCP_speed`` = TCP Jacobian x ``actual_qd``; ``actual_tool_accelerometer``
 is gravity in tool coordinates; currents, forces, ``elbow_position`` and the like read zero.
 """
@@ -95,6 +111,7 @@ from .ur_motion import (
     Motion,
     MotionFault,
     PathMotion,
+    PolylinePath,
     RepeatabilityNoise,
     SpeedJMotion,
     SpeedLMotion,
@@ -108,7 +125,9 @@ __all__ = [
     "RTDE_PORT",
     "SCRIPT_PORT",
     "ControllerConfig",
+    "ScriptOp",
     "SimulatedController",
+    "parse_script",
     "pick_free_loopback_host",
     "run_controller",
 ]
@@ -219,6 +238,107 @@ class ControllerConfig:
         return round(1e9 / self.truth_rate_hz)
 
 
+_MOTION_DEFAULTS = {
+    "movel": {"a": 1.2, "v": 0.25, "t": 0.0, "r": 0.0},
+    "movep": {"a": 1.2, "v": 0.25, "t": 0.0, "r": 0.0},
+    "movej": {"a": 1.4, "v": 1.05, "t": 0.0, "r": 0.0},
+}
+_POSITIONAL = {"movel": "avtr", "movej": "avtr", "movep": "avr"}
+_SCRIPT_STATEMENTS = frozenset({"movel", "movep", "movej", "set_tcp", "sleep"})
+_CALL = re.compile(r"^\s*([A-Za-z_]\w*)\s*\((.*)\)\s*$")
+
+
+@dataclass(frozen=True)
+class ScriptOp:
+    """One statement of a minimal URScript program (SI units)."""
+
+    kind: str
+    """``movel``, ``movep``, ``movej``, ``set_tcp`` or ``sleep``."""
+    target: tuple[float, ...] = ()
+    """Pose ``[x, y, z, rx, ry, rz]`` or joint vector (rad)."""
+    is_pose: bool = False
+    a: float = 0.0
+    v: float = 0.0
+    t: float = 0.0
+    r: float = 0.0
+    line: int = 0
+
+
+def _split_args(text: str) -> list[str]:
+    out: list[str] = []
+    cur: list[str] = []
+    depth = 0
+    for ch in text:
+        if ch in "[(":
+            depth += 1
+        elif ch in "])":
+            depth -= 1
+        if ch == "," and depth == 0:
+            out.append("".join(cur).strip())
+            cur = []
+        else:
+            cur.append(ch)
+    if "".join(cur).strip():
+        out.append("".join(cur).strip())
+    return out
+
+
+def _literal(text: str) -> tuple[tuple[float, ...], bool] | float:
+    t = text.strip()
+    is_pose = t.startswith("p[")
+    if is_pose:
+        t = t[1:]
+    if t.startswith("[") and t.endswith("]"):
+        return tuple(float(v) for v in t[1:-1].split(",")), is_pose
+    return float(t)
+
+
+def parse_script(text: str) -> list[ScriptOp] | None:
+    """The motion statements of a URScript program, or None when it has none (see the module
+    docstring). Raises ValueError for a motion statement it cannot read."""
+    ops: list[ScriptOp] = []
+    for no, raw in enumerate(text.splitlines(), start=1):
+        line = raw.split("#", 1)[0].strip()
+        m = _CALL.match(line)
+        if m is None or m.group(1) not in _SCRIPT_STATEMENTS:
+            if line and not re.match(r"(def|sec)\s+\w+\s*\(|end$", line):
+                log.debug("script line %d not simulated: %s", no, line[:80])
+            continue
+        name, args = m.group(1), _split_args(m.group(2))
+        try:
+            if name == "sleep":
+                ops.append(ScriptOp("sleep", t=float(args[0]), line=no))
+                continue
+            first = _literal(args[0])
+            if not isinstance(first, tuple) or len(first[0]) != 6:
+                raise ValueError("the target must be a pose p[...] or 6 joint values")
+            target, is_pose = first
+            if name == "set_tcp":
+                if not is_pose:
+                    raise ValueError("set_tcp needs a pose p[...]")
+                ops.append(ScriptOp("set_tcp", target, True, line=no))
+                continue
+            if name in ("movel", "movep") and not is_pose:
+                raise ValueError(f"{name} needs a pose p[...]")
+            values = dict(_MOTION_DEFAULTS[name])
+            for i, arg in enumerate(args[1:]):
+                if "=" in arg:
+                    key, _, val = arg.partition("=")
+                    key = key.strip()
+                else:
+                    key, val = _POSITIONAL[name][i], arg
+                if key not in values:
+                    raise ValueError(f"unknown argument {key!r}")
+                v = _literal(val)
+                if not isinstance(v, float):
+                    raise ValueError(f"argument {key} must be a number")
+                values[key] = v
+            ops.append(ScriptOp(name, target, is_pose, line=no, **values))
+        except (ValueError, IndexError) as e:
+            raise ValueError(f"line {no}: {line[:60]}: {e}") from None
+    return ops or None
+
+
 class _Watch:
     """Run ``action`` once, in the first cycle where ``done()`` holds."""
 
@@ -291,6 +411,9 @@ class _Controller:
         self.async_watch: _Watch | None = None
         self.stop_watch: _Watch | None = None
         self.custom_end_cycle = -1
+        self.script_ops: list[ScriptOp] = []
+        self.script_running = False
+        self.script_sleep_until = 0
         # registers
         self.inputs: dict[str, Any] = {}
         self.input_owner: dict[str, object] = {}
@@ -489,6 +612,8 @@ class _Controller:
             w.active = False
         self.watches = []
         self.async_watch = self.stop_watch = None
+        self.script_ops = []
+        self.script_running = False
         self._stop_motion(
             self.cfg.program_stop_decel_rad_s2, self.cfg.program_stop_decel_m_s2, override=False
         )
@@ -534,6 +659,17 @@ class _Controller:
                 idx = int(reg) + (int(plus) if plus else 0)
                 if 0 <= idx < 48:
                     self.out_int[idx] = _int32(int(value))
+            try:
+                ops = parse_script(text)
+            except ValueError as e:
+                self._script_error(f"program {name}: {e}")
+                return
+            if ops is not None:
+                self.script_ops = ops
+                self.script_running = True
+                self.script_sleep_until = 0
+                log.info("program %s runs %d motion statements", name, len(ops))
+                return
             self.custom_end_cycle = self.cycle + 2
             log.info("program %s run (only its integer register writes are simulated)", name)
 
@@ -623,6 +759,10 @@ class _Controller:
     # ------------------------------------------------------------------ script emulation
 
     def _script_step(self) -> None:
+        if self.program_kind == "custom" and self.script_running:
+            if self.runtime_state == RUNTIME_PLAYING:
+                self._script_statements()
+            return
         if self.program_kind == "custom" and self.cycle >= self.custom_end_cycle:
             self._end_program("finished")
             return
@@ -650,6 +790,65 @@ class _Controller:
         self._process(cmd)
         if self.program_kind == "rtde_control" and self.busy is None:
             self._write_int(0, 2)
+
+    def _script_statements(self) -> None:
+        """Run the program's statements: start the next motion when the arm is idle."""
+        if self._moving():
+            return
+        now = self.cycle * self.period_ns
+        if now < self.script_sleep_until:
+            return
+        ops = self.script_ops
+        while ops:
+            op = ops.pop(0)
+            if op.kind == "set_tcp":
+                self.tcp2flange = se3.pose_to_matrix(np.asarray(op.target, dtype=np.float64))
+                self._tcp_offset_pose = tuple(float(v) for v in op.target)
+                self._pose_key = b""
+                continue
+            if op.kind == "sleep":
+                self.script_sleep_until = now + round(op.t * 1e9)
+                return
+            try:
+                if op.kind == "movej":
+                    self._script_movej(op)
+                else:
+                    group = [op]
+                    while group[-1].r > 0 and ops and ops[0].kind in ("movel", "movep"):
+                        group.append(ops.pop(0))
+                    self._script_linear(group)
+            except (MotionFault, kinematics.Unreachable, ValueError) as e:
+                self._script_error(f"line {op.line}: {op.kind}: {e}")
+            return
+        self._end_program("finished")
+
+    def _script_movej(self, op: ScriptOp) -> None:
+        a, v = op.a, op.v
+        if op.is_pose:
+            T = se3.pose_to_matrix(np.asarray(op.target, dtype=np.float64))
+
+            def plan(q0: FloatArray) -> Motion:
+                q = self._ik_tcp(T, q0)
+                return self._plan_movej(q, v, a)(q0)
+
+            self._schedule(_Job("movej", plan), a)
+        else:
+            q = np.asarray(op.target, dtype=np.float64)
+            self._schedule(_Job("movej", self._plan_movej(q, v, a)), a)
+
+    def _script_linear(self, group: list[ScriptOp]) -> None:
+        v = min(group[0].v, self.cfg.max_tool_speed_m_s)
+        a = group[0].a
+        targets = [se3.pose_to_matrix(np.asarray(g.target, dtype=np.float64)) for g in group]
+        tcp = self.tcp2flange.copy()
+        if len(targets) == 1:
+            job = _Job(group[0].kind, self._plan_movel(targets[0], v, a))
+        else:
+            job = _Job(
+                group[0].kind,
+                lambda q0: PathMotion(PolylinePath(self.model, tcp, q0, targets), v, a),
+            )
+        self._schedule(job, a)
 
     def _tcp_pose_matrix(self, q: FloatArray) -> FloatArray:
         return self.kin.forward(q) @ self.tcp2flange
@@ -940,6 +1139,8 @@ class _Controller:
             "q_true": self.q_true.tolist(),
             "qd": self.qd.tolist(),
             "tcp_pose": se3.matrix_to_pose(self._tcp_pose_matrix(self.q)).tolist(),
+            "tcp_pose_true": se3.matrix_to_pose(self._tcp_pose_matrix(self.q_true)).tolist(),
+            "tcp_offset": list(self._tcp_offset_pose),
             "moving": self._moving(),
             "runtime_state": self.runtime_state,
             "robot_mode": self.robot_mode,
@@ -1456,7 +1657,8 @@ class SimulatedController:
         self._request("clear_pstop")
 
     def state(self) -> dict[str, Any]:
-        """Snapshot: ``timestamp``, ``q`` (reported), ``q_true``, ``tcp_pose``, ``moving``,
+        """Snapshot: ``timestamp``, ``q`` (reported), ``q_true``, ``tcp_pose`` (and
+        ``tcp_pose_true`` from ``q_true``), ``tcp_offset`` (the active TCP), ``moving``,
         ``runtime_state``, ``robot_mode``, ``safety_mode``, ``program``, ``rtde_clients`` ..."""
         return dict(self._request("state"))
 

@@ -10,6 +10,10 @@
   cubic Hermite segments whose end slopes come from the Jacobian, so the TCP stays on the line to
   well under a micrometre while the inverse kinematics runs only a few hundred times per second of
   motion. The last knot is the exact solution for the target.
+* :class:`PolylinePath` - a run of blended ``movel``/``movep`` moves of a URScript program,
+  approximated: the TCP passes through every waypoint on straight segments at the run's speed
+  without stopping (no corner rounding, so it stays exactly on the polyline), one trapezoidal
+  profile over the whole run.
 * :class:`PathMotion`, :class:`SpeedJMotion`, :class:`SpeedLMotion` - what the controller steps
   every internal tick (``step(dtau)`` returns the joint positions); each can be asked to stop with a
   deceleration.
@@ -37,6 +41,7 @@ __all__ = [
     "Motion",
     "MotionFault",
     "PathMotion",
+    "PolylinePath",
     "RepeatabilityNoise",
     "SpeedJMotion",
     "SpeedLMotion",
@@ -349,6 +354,82 @@ class CartesianPath:
         )
 
 
+ROTATION_LEVER_M = 0.1
+"""A pure reorientation within a :class:`PolylinePath` counts as this many metres per radian of
+path (so that it takes time at the run's speed)."""
+
+
+class PolylinePath:
+    """Linear moves through ``targets`` (TCP poses, base frame) one after the other, as one path
+    (see the module docstring). Path parameter: metres of TCP travel (a pure reorientation counts
+    :data:`ROTATION_LEVER_M` per radian). The linear segments are built when the motion reaches
+    them, each from the joints where the previous one ended."""
+
+    unit = "m"
+
+    def __init__(
+        self,
+        model: kinematics.DHParams,
+        tcp2flange: FloatArray,
+        q_start: ArrayLike,
+        targets: list[FloatArray],
+    ) -> None:
+        if not targets:
+            raise ValueError("a polyline needs at least one target")
+        self.model = model
+        self.tcp2flange = np.asarray(tcp2flange, dtype=np.float64)
+        self.q0 = np.asarray(q_start, dtype=np.float64).copy()
+        T = [kinematics.forward(model, self.q0) @ self.tcp2flange]
+        lengths: list[float] = []
+        for Ti in targets:
+            Ti = np.asarray(Ti, dtype=np.float64)
+            dist = float(np.linalg.norm(Ti[:3, 3] - T[-1][:3, 3]))
+            angle = float(se3.rotation_angle(T[-1][:3, :3].T @ Ti[:3, :3]))
+            L = dist if dist > 1e-7 else angle * ROTATION_LEVER_M
+            if L <= 1e-9:
+                continue  # a repeated waypoint
+            T.append(Ti)
+            lengths.append(L)
+        self.targets = T[1:]
+        self.seg_lengths = np.asarray(lengths, dtype=np.float64)
+        self.cum = np.concatenate([[0.0], np.cumsum(self.seg_lengths)])
+        self.length = float(self.cum[-1])
+        # Fail before moving when the last target is out of reach.
+        if (
+            self.targets
+            and kinematics.inverse(model, self.targets[-1] @ se3.invert(self.tcp2flange)).shape[0]
+            == 0
+        ):
+            raise MotionFault(
+                f"movel target {np.round(self.targets[-1][:3, 3], 4).tolist()} m unreachable"
+            )
+        self._segs: list[CartesianPath] = []
+
+    def _segment(self, i: int) -> CartesianPath:
+        while len(self._segs) <= i:
+            j = len(self._segs)
+            q = self.q0 if j == 0 else self._segs[-1].q_end
+            self._segs.append(CartesianPath(self.model, self.tcp2flange, q, self.targets[j]))
+        return self._segs[i]
+
+    @property
+    def q_end(self) -> FloatArray:
+        if not self.targets:
+            return self.q0.copy()
+        return self._segment(len(self.targets) - 1).q_end
+
+    def q_at(self, s: float) -> FloatArray:
+        if not self.targets:
+            return self.q0.copy()
+        if s >= self.length:
+            return self.q_end
+        i = int(np.searchsorted(self.cum, max(s, 0.0), side="right")) - 1
+        i = min(max(i, 0), len(self.targets) - 1)
+        seg = self._segment(i)
+        frac = (max(s, 0.0) - float(self.cum[i])) / float(self.seg_lengths[i])
+        return seg.q_at(frac * seg.length)
+
+
 class Motion:
     """Something the controller steps every internal tick."""
 
@@ -368,7 +449,9 @@ class Motion:
 class PathMotion(Motion):
     """A path followed with a trapezoidal profile; a stop decelerates along the same path."""
 
-    def __init__(self, path: JointPath | CartesianPath, speed: float, accel: float) -> None:
+    def __init__(
+        self, path: JointPath | CartesianPath | PolylinePath, speed: float, accel: float
+    ) -> None:
         self.path = path
         self.profile: Trapezoid | Decel = Trapezoid(path.length, speed, accel)
         self.tau = 0.0

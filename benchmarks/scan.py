@@ -1,0 +1,408 @@
+"""Scan jobs on the simulated cell: the demo part scanned in several passes at two table angles.
+
+Run: ``.venv/bin/python benchmarks/scan.py [--speed-mm-s 20] [--keep DIR]``
+
+1. The simulated cell (UR5e, LPF1 sensor 512 points at 500 Hz, 20 um noise, Modbus table) with
+   its true sensor and table calibrations written as the calibrations in force.
+2. A plan generated over the demo part's bounding box (part frame): line 50 mm, overlap 30 %,
+   standoff 100 mm, table at 0 and 90 deg, views tilted +-15 deg about the pass direction.
+3. ``run_scan`` executes it (motion, recording, alignment, ICP merge, outputs).
+4. Figures against the ground truth of the scene (analytic distances to the part's primitives,
+   in the part frame = the scene's table frame):
+
+   * merged cloud (voxel 0.25 mm) deviation from the true surface, RMS, before ICP (passes as
+     the calibration aligned them) and after ICP;
+   * the largest ICP correction with the true calibration;
+   * the same recorded passes aligned with a sensor calibration off by 0.3 mm (along the
+     sensor's X, Y and Z in turn): whether the report flags it;
+   * coverage: the part's surface visible from the plan's views (dense ray casting of the true
+     scene from each view direction over the whole box) against the merged cloud; the largest
+     distance from a visible surface sample to the nearest scanned point (a gap between strips
+     would show here), and the smallest strip overlap of the plan.
+
+Exits non-zero when a target is missed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _report import Figure, report
+
+from wristscan.calib import se3
+from wristscan.daemon.calibfile import (
+    Calibration,
+    Residuals,
+    RobotIdentity,
+    SensorIdentity,
+    write_calibration,
+)
+from wristscan.daemon.config import load_config
+from wristscan.daemon.scanjob import (
+    MergeOptions,
+    ScanCalibration,
+    align_passes,
+    corrected_clouds,
+    merge_passes,
+    report_lines,
+    run_scan,
+    voxel_mean,
+)
+from wristscan.daemon.scanplan import ScanPlan, describe_plan, down_matrix, generate_plan
+from wristscan.daemon.simcell import dump_toml, free_sim_config, start_cell
+from wristscan.drivers.sim.scene import Box, Cylinder, Primitive, Scene, TriangleMesh
+
+FloatArray = NDArray[np.float64]
+
+PART_BBOX_MIN = (-0.0893, -0.02, 0.03)
+"""The demo part (box, boss, 30 deg ramp) on the platter top, part frame (m)."""
+PART_BBOX_MAX = (0.06, 0.04, 0.09)
+FOV_M = 0.05
+OVERLAP = 0.3
+STANDOFF_M = 0.10
+DEPTH_RANGE_M = (0.05, 0.15)
+TABLE_DEG = (0.0, 90.0)
+TILTS_DEG = (15.0, -15.0)
+OFF_M = 0.3e-3
+
+
+# --------------------------------------------------------------------------------------------
+# Ground truth: distance to the table-mounted primitives (part frame)
+
+
+def _primitive_distance(prim: Primitive, p: FloatArray) -> FloatArray:
+    """Unsigned distance (m) of points ``p`` (N, 3, mount frame) from the surface of ``prim``;
+    exact for boxes and cylinders, the largest face-plane distance for a convex mesh (exact
+    off the edges, which is what a measured point near the surface needs)."""
+    q = p @ prim.mount2local[:3, :3].T + prim.mount2local[:3, 3]
+    if isinstance(prim, Box):
+        d = np.abs(q) - prim.half
+        out = np.linalg.norm(np.maximum(d, 0.0), axis=1) + np.minimum(d.max(axis=1), 0.0)
+        return np.asarray(np.abs(out))
+    if isinstance(prim, Cylinder):
+        r = np.hypot(q[:, 0], q[:, 1]) - prim.radius
+        h = np.abs(q[:, 2] - 0.5 * prim.height) - 0.5 * prim.height
+        d = np.stack([r, h], axis=1)
+        out = np.linalg.norm(np.maximum(d, 0.0), axis=1) + np.minimum(d.max(axis=1), 0.0)
+        return np.asarray(np.abs(out))
+    if isinstance(prim, TriangleMesh):
+        v, f = prim.vertices, prim.faces
+        a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+        n = np.cross(b - a, c - a)
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        n *= np.sign(np.einsum("ij,ij->i", n, a - v.mean(axis=0)))[:, None]  # outwards
+        sd = np.einsum("pfj,fj->pf", q[:, None, :] - a[None], n).max(axis=1)
+        return np.asarray(np.abs(sd))
+    raise TypeError(f"no distance for {type(prim).__name__}")
+
+
+def part_distance(scene: Scene, p: FloatArray) -> FloatArray:
+    """Distance (m) of part-frame points from the nearest table-mounted surface."""
+    prims = [x for x in scene.primitives if x.mount == "table"]
+    out = np.full(p.shape[0], np.inf)
+    for a in range(0, p.shape[0], 200_000):
+        blk = p[a : a + 200_000]
+        out[a : a + blk.shape[0]] = np.min([_primitive_distance(x, blk) for x in prims], axis=0)
+    return out
+
+
+def rms(x: FloatArray) -> float:
+    return float(np.sqrt(np.mean(x * x)))
+
+
+# --------------------------------------------------------------------------------------------
+# Coverage: the true surface visible from the plan's views
+
+
+def visible_samples(
+    scene: Scene, plan: ScanPlan, spacing_m: float = 0.0005
+) -> tuple[FloatArray, FloatArray]:
+    """Part-frame points of the true surface that the plan's views can see inside the plan's
+    box, and the view direction of each: for every (table angle, orientation) of the plan, a
+    dense grid of rays along the sensor's +Z over the box's whole projection, within the
+    measuring range."""
+    g = plan.generator or {}
+    lo, hi = np.asarray(g["bbox_min_m"]), np.asarray(g["bbox_max_m"])
+    views = {
+        (p.table_deg, p.orientation.yaw_deg, p.orientation.tilt_deg)
+        for p in plan.passes
+        if hasattr(p, "orientation")
+    }
+    corners = np.array(
+        [
+            [(lo, hi)[i][0], (lo, hi)[j][1], (lo, hi)[k][2]]
+            for i in (0, 1)
+            for j in (0, 1)
+            for k in (0, 1)
+        ]
+    )
+    pts, dirs = [], []
+    for table_deg, yaw, tilt in sorted(views, key=str):
+        R = down_matrix(yaw, 0.0, tilt)
+        proj = corners @ R
+        (u0, v0, d0), (u1, v1, d1) = proj.min(axis=0), proj.max(axis=0)
+        depth = 0.5 * (d0 + d1) - STANDOFF_M
+        uu, vv = np.meshgrid(np.arange(u0, u1, spacing_m), np.arange(v0, v1, spacing_m))
+        local = np.column_stack([uu.ravel(), vv.ravel(), np.full(uu.size, depth)])
+        o_part = local @ R.T
+        theta = math.radians(table_deg or 0.0)
+        t2b = scene.table2base(theta)
+        o_base = o_part @ t2b[:3, :3].T + t2b[:3, 3]
+        d_base = np.broadcast_to(t2b[:3, :3] @ R[:, 2], o_base.shape)
+        t, hit = scene.raycast(o_base, d_base, theta)
+        ok = hit & (t >= DEPTH_RANGE_M[0]) & (t <= DEPTH_RANGE_M[1])
+        p = o_part[ok] + t[ok, None] * R[:, 2]
+        inside = np.all((p >= lo - 1e-4) & (p <= hi + 1e-4), axis=1)
+        pts.append(p[inside])
+        dirs.append(np.broadcast_to(R[:, 2], p[inside].shape))
+    return np.concatenate(pts), np.concatenate(dirs)
+
+
+# --------------------------------------------------------------------------------------------
+# The simulated cell itself: do the profiles match the scene seen from their paired poses?
+
+
+def sim_consistency(scene: Scene, recorded: Any, sensor2flange: FloatArray) -> list[float]:
+    """Per pass, the median |z - z_true| (m) over a sample of profiles, z_true ray-cast in the
+    true scene from the paired robot pose at the pass's table angle. Timing errors of the
+    cell (synchroniser, simulator) show here, independently of the merge."""
+    out = []
+    for r in recorded:
+        sw = r.sweep
+        rows = np.arange(0, sw.n_profiles, max(1, sw.n_profiles // 60))
+        errs = []
+        for k in rows:
+            m = (sw.profile_index == k) & sw.valid
+            if not m.any():
+                continue
+            y = sw.y[m]
+            o = np.column_stack([np.zeros_like(y), y, np.zeros_like(y)])
+            d = np.tile([0.0, 0.0, 1.0], (y.size, 1))
+            t, _ = scene.raycast_bundles(
+                (sw.flange2base[k] @ sensor2flange)[None], o, d, r.table_angle_rad or 0.0
+            )
+            errs.append(np.abs(sw.z[m] - t[0]))
+        e = np.concatenate(errs) if errs else np.array([np.inf])
+        out.append(float(np.median(e[np.isfinite(e)])) if np.isfinite(e).any() else math.inf)
+    return out
+
+
+def _write_truth(folder: Path, truth: dict[str, Any]) -> None:
+    robot, sensor = RobotIdentity("UR5e"), SensorIdentity("lpf1-udp", "1")
+    write_calibration(
+        folder / "s2f.json",
+        Calibration(
+            kind="sensor2flange",
+            transform=np.array(truth["sensor2flange"]),
+            robot=robot,
+            sensor=sensor,
+            method="simulation ground truth",
+            residuals=Residuals(0.0),
+        ),
+    )
+    write_calibration(
+        folder / "table.json",
+        Calibration(
+            kind="table",
+            transform=se3.invert(np.array(truth["table_zero2base"])),
+            robot=robot,
+            sensor=sensor,
+            method="simulation ground truth",
+            residuals=Residuals(0.0),
+            parameters={"encoder_offset_rad": 0.0},
+        ),
+    )
+
+
+def run(speed_m_s: float = 0.02, keep: Path | None = None) -> int:
+    logging.basicConfig(level=logging.WARNING)
+    tmp = tempfile.TemporaryDirectory(prefix="wristscan-bench-scan-")
+    folder = Path(tmp.name) if keep is None else keep
+    folder.mkdir(parents=True, exist_ok=True)
+    doc = free_sim_config(
+        {
+            "calibration": {"file": "s2f.json", "table_file": "table.json"},
+            "sim.sensor": {"rate_hz": 500.0, "n_points": 512},
+        }
+    )
+    (folder / "cell.toml").write_text(dump_toml(doc))
+    cfg = load_config(folder / "cell.toml")
+    plan = generate_plan(
+        PART_BBOX_MIN,
+        PART_BBOX_MAX,
+        fov_width_m=FOV_M,
+        overlap=OVERLAP,
+        standoff_m=STANDOFF_M,
+        table_angles_deg=TABLE_DEG,
+        tilts_deg=TILTS_DEG,
+        depth_range_m=DEPTH_RANGE_M,
+        speed_m_s=speed_m_s,
+        name="demo part",
+    )
+    print("\n".join(describe_plan(plan)))
+    t0 = time.monotonic()
+    cell = start_cell(cfg)
+    try:
+        truth = cell.truth()
+        _write_truth(folder, truth)
+        res = run_scan(
+            cfg,
+            plan,
+            confirmed=True,
+            out_dir=folder / "out",
+            progress=lambda d, n, s: print(f"[{d}/{n} {time.monotonic() - t0:5.1f} s] {s}"),
+        )
+    finally:
+        cell.stop()
+    print("\n".join(report_lines(res.report)))
+    scene = cell.scene
+    opts = MergeOptions()
+    cal = res.calibration
+
+    # Deviation from the true surface: merged clouds (voxel 0.25 mm) before and after ICP.
+    def merged(clouds: Any) -> FloatArray:
+        return voxel_mean(np.concatenate([c.xyz for c in clouds]), opts.voxel_m)[0]
+
+    before = merged(res.clouds)
+    after = merged(corrected_clouds(res.clouds, res.merge))
+    dev_before = rms(part_distance(scene, before))
+    dev_after = rms(part_distance(scene, after))
+    raw = np.concatenate([c.xyz for c in res.clouds])
+    sample = np.random.default_rng(0).choice(raw.shape[0], min(raw.shape[0], 500_000), False)
+    dev_raw = rms(part_distance(scene, raw[sample]))
+    assert res.merge is not None
+    shifts = [c.shift_m for c in res.merge.corrections if c.status != "not measured"]
+    rots = [c.rotation_deg for c in res.merge.corrections if c.status != "not measured"]
+    unmeasured = sum(c.status == "not measured" for c in res.merge.corrections)
+
+    # The same passes with a sensor calibration off by 0.3 mm.
+    off_results: dict[str, tuple[int, float]] = {}
+    for axis, name in enumerate("XYZ"):
+        delta = np.zeros(3)
+        delta[axis] = OFF_M
+        s2f = cal.sensor2flange @ se3.make(t=delta)
+        off = ScanCalibration(s2f, cal.base2table, cal.encoder_offset_rad)
+        m = merge_passes(align_passes(res.recorded, off, res.frame, plan), opts)
+        off_results[name] = (
+            len(m.flagged),
+            max(c.shift_m for c in m.corrections if c.status != "not measured"),
+        )
+        print(
+            f"calibration off by 0.3 mm along sensor {name}: {len(m.flagged)} of "
+            f"{len(m.corrections)} passes flagged, largest correction "
+            f"{off_results[name][1] * 1e3:.3f} mm"
+        )
+
+    # Coverage of the visible surface.
+    vis, _ = visible_samples(scene, plan)
+    dist, _ = cKDTree(after).query(vis, k=1)
+    covered = float(np.mean(dist <= 0.5e-3))
+    g = plan.generator or {}
+    n_angles = len({p.table_deg for p in plan.passes})
+    print(
+        f"{len(res.recorded)} passes at {n_angles} table angles, {len(after)} merged points; "
+        f"raw points deviate {dev_raw * 1e6:.1f} um RMS (sensor noise 20 um); "
+        f"{vis.shape[0]} visible surface samples"
+    )
+    sim_err = sim_consistency(scene, res.recorded, np.array(truth["sensor2flange"]))
+    print(
+        "simulated cell: median |z - z_true| per pass from its paired pose (um): "
+        + ", ".join(f"{e * 1e6:.1f}" for e in sim_err)
+    )
+    figures = [
+        Figure(
+            "simulated cell consistency (worst pass median)",
+            max(sim_err) * 1e3,
+            "mm",
+            "<= 0.02 (else the cell failed, not the merge)",
+            max(sim_err) <= 0.02e-3,
+        ),
+        Figure(
+            f"passes (at {n_angles} table angles)",
+            len(res.recorded),
+            "",
+            ">= 4 at >= 2 angles",
+            len(res.recorded) >= 4 and n_angles >= 2,
+        ),
+        Figure(
+            "merged deviation before ICP, RMS",
+            dev_before * 1e3,
+            "mm",
+            "<= 0.05",
+            dev_before <= 0.05e-3,
+        ),
+        Figure(
+            "merged deviation after ICP, RMS",
+            dev_after * 1e3,
+            "mm",
+            "<= 0.03",
+            dev_after <= 0.03e-3,
+        ),
+        Figure(
+            "largest ICP correction, true calibration",
+            max(shifts) * 1e3,
+            "mm",
+            "<= 0.02",
+            max(shifts) <= 0.02e-3 and unmeasured == 0,
+        ),
+        Figure("largest ICP rotation, true calibration", max(rots), "deg", "-", True),
+    ]
+    for name, (n_flag, _) in off_results.items():
+        figures.append(
+            Figure(
+                f"0.3 mm off along sensor {name}: passes flagged",
+                n_flag,
+                "",
+                ">= 1 (flagged)",
+                n_flag >= 1,
+            )
+        )
+    figures += [
+        Figure(
+            "plan strip overlap (smallest)",
+            g.get("min_overlap", 0.0) * 100,
+            "%",
+            f">= {OVERLAP * 100:g}",
+            g.get("min_overlap", 0.0) >= OVERLAP,
+        ),
+        Figure(
+            "visible surface within 0.5 mm of the cloud",
+            covered * 100,
+            "%",
+            ">= 99.9",
+            covered >= 0.999,
+        ),
+        Figure(
+            "largest gap (visible sample to cloud)",
+            float(dist.max()) * 1e3,
+            "mm",
+            "<= 0.5",
+            float(dist.max()) <= 0.5e-3,
+        ),
+        Figure("scan duration", res.duration_s, "s", "-", True),
+    ]
+    return report("scan jobs on the simulated cell", figures)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--speed-mm-s", type=float, default=20.0, help="pass speed (mm/s)")
+    ap.add_argument("--keep", type=Path, default=None, help="keep the outputs in this folder")
+    a = ap.parse_args(argv)
+    return run(a.speed_mm_s * 1e-3, a.keep)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
