@@ -215,6 +215,20 @@ def _minor_faults(pid: int) -> int:
     return int(_stat(pid)[7])
 
 
+def _thread_ticks(pid: int) -> dict[int, tuple[str, int]]:
+    """Per thread of ``pid``: (OS thread name, utime + stime ticks). The pipeline names its
+    threads (``reader-sensor``, ``pipeline-worker``...); zenoh's are ``rx-0``, ``tx-0``..."""
+    out: dict[int, tuple[str, int]] = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            name = (task / "comm").read_text().strip()
+            f = (task / "stat").read_text().rsplit(")", 1)[1].split()
+            out[int(task.name)] = (name, int(f[11]) + int(f[12]))
+        except (OSError, IndexError, ValueError):
+            pass
+    return out
+
+
 def _runqueue_wait_ns(pid: int) -> dict[int, int]:
     """Per thread of ``pid``: ns spent runnable but waiting for a CPU (``schedstat``)."""
     out: dict[int, int] = {}
@@ -359,6 +373,21 @@ def _window_latency(rows: np.ndarray, offset_ns: int) -> tuple[np.ndarray, np.nd
     return (np.concatenate(lat) if lat else np.zeros(0)), per_batch
 
 
+def _watch_truth(ring: Any, duration_s: float, every_s: float = 0.02) -> np.ndarray:
+    """Sleep ``duration_s`` while sampling how far the simulated controller's truth ring lags
+    behind the host clock (ms): the controller appends its true joints each cycle, so the lag
+    says how late the robot stream itself runs (a profile cannot be paired before the robot
+    samples after its exposure arrive)."""
+    lags: list[float] = []
+    t_end = time.monotonic() + duration_s
+    while (now := time.monotonic()) < t_end:
+        latest = ring.latest() if ring is not None else None
+        if latest is not None:
+            lags.append((time.monotonic_ns() - int(latest[0])) / MS)
+        time.sleep(min(every_s, max(t_end - now, 0.0)))
+    return np.array(lags)
+
+
 def _drained_stats(client: Any, timeout_s: float = 20.0) -> dict[str, Any]:
     """The daemon's stats once nothing is pending and ``received`` stopped moving."""
     deadline = time.monotonic() + timeout_s
@@ -457,7 +486,7 @@ def measure_pipeline(
         flange = sensor_looking_down(target, 0.10) @ se3.invert(s2f)
         q0 = np.array(cell.controller.state()["q"])
         q = kinematics.inverse_nearest(cfg.robot.model, flange, q0)
-        if not cell.controller.set_joint_positions(q):
+        if not cell.controller.set_joint_positions(q.tolist()):
             raise RuntimeError("the simulated robot refused the measuring pose")
 
         env = dict(os.environ, NOTIFY_SOCKET=str(notify.path))
@@ -482,14 +511,22 @@ def measure_pipeline(
         sub = _spawn("_sub", endpoint, f"{cfg.zenoh.prefix}/cloud", str(tmp / "sub.npz"))
         if _expect_line(sub, "subscriber") != "ready":
             raise RuntimeError("the subscriber did not start")
+        if nice is not None:
+            _set_session_nice(sub.pid, nice)
 
         port = int(cfg.sensor.options.port)  # type: ignore[union-attr]
         with CloudClient(cfg.zenoh.prefix, connect=[endpoint], subscribe=False) as client:
             # Settle: the clock fits lock, then warmup_s of steady publishing.
-            deadline = time.monotonic() + 30.0
-            while client.query("stats", timeout=5.0)["published"] == 0:
+            deadline = time.monotonic() + 60.0
+            while (st := client.query("stats", timeout=5.0))["published"] == 0:
                 if time.monotonic() > deadline:
-                    raise RuntimeError(f"nothing published after 30 s; see {log_path}")
+                    tail = log_path.read_text(errors="replace").strip().splitlines()[-3:]
+                    raise RuntimeError(
+                        f"nothing published after 60 s (received {st['received']}, dropped "
+                        f"{st['dropped']}, sensor clocks {st['pairing']['sensor_clocks']}, "
+                        f"robot clock {st['pairing']['robot_clock']}); daemon log ends: "
+                        f"{' | '.join(tail)}"
+                    )
                 time.sleep(0.2)
             time.sleep(warmup_s)
 
@@ -507,13 +544,14 @@ def measure_pipeline(
             machine_a = _machine_ticks()
             flt_a = _minor_faults(daemon.pid)
             wait_a = _runqueue_wait_ns(daemon.pid)
+            threads_a = _thread_ticks(daemon.pid)
             sim_pid = cell.sensor._proc.pid
             sim_a = _cpu_ticks(sim_pid)
             if t_resume <= t_a:
                 raise RuntimeError("the pipeline did not drain within the sensor's pause")
             time.sleep((t_resume - t_a) * 1e-9)
             spy = _start_profiler(daemon.pid, duration_s, profile_out)
-            time.sleep(duration_s)
+            robot_lag = _watch_truth(cell.robot_ring, duration_s)
             cell.sensor.disconnect(3600.0)  # silent until the cell stops
             t_end = time.monotonic_ns()
             s_b = cell.sensor.stats()
@@ -525,6 +563,7 @@ def measure_pipeline(
             machine_b = _machine_ticks()
             flt_b = _minor_faults(daemon.pid)
             wait_b = _runqueue_wait_ns(daemon.pid)
+            threads_b = _thread_ticks(daemon.pid)
             sim_b = _cpu_ticks(sim_pid)
             mem = _mem_kb(daemon.pid)
             if spy is not None:
@@ -571,6 +610,13 @@ def measure_pipeline(
     kids_a, kids_b = cpu_a[1], cpu_b[1]
     kid_ticks = sum(kids_b[p] - kids_a[p] for p in kids_b if p in kids_a)
     daemon_s = (cpu_b[0] - cpu_a[0]) / hz
+    by_thread: dict[str, float] = {}
+    for tid, (name, ticks) in threads_b.items():
+        if tid in threads_a:
+            key = name if not name.startswith("python") else "other"
+            by_thread[key] = (
+                by_thread.get(key, 0.0) + 100.0 * (ticks - threads_a[tid][1]) / hz / active
+            )
     # Everything this benchmark started (cell, daemon, subscriber, itself) against the machine.
     ours = (
         ours_b[0]
@@ -605,12 +651,15 @@ def measure_pipeline(
         "batch_gaps": gaps,
         "sim_overrun": int(s_b["overrun"] - s_a["overrun"]),
         "robot_samples_lost": int(d_b["robot"]["lost"]) - int(d_a["robot"]["lost"]),
+        "robot_lag_p50_ms": float(np.percentile(robot_lag, 50)) if robot_lag.size else float("nan"),
+        "robot_lag_p99_ms": float(np.percentile(robot_lag, 99)) if robot_lag.size else float("nan"),
         "latency_p50_ms": float(np.percentile(lat, 50)) if lat.size else float("nan"),
         "latency_p99_ms": float(np.percentile(lat, 99)) if lat.size else float("nan"),
         "latency_max_ms": float(lat.max()) if lat.size else float("nan"),
         "oldest_p99_ms": float(np.percentile(oldest, 99)) if oldest.size else float("nan"),
         "utc_offset_change_us": (offset1 - offset0) / 1e3,
         "daemon_cpu_pct": 100.0 * daemon_s / active,
+        "thread_cpu_pct": dict(sorted(by_thread.items(), key=lambda kv: -kv[1])),
         "cpu_us_per_profile": 1e6 * daemon_s / max(published, 1),
         "children_cpu_pct": 100.0 * kid_ticks / hz / active,
         "sim_sensor_cpu_pct": 100.0 * (sim_b - sim_a) / hz / active,
@@ -622,6 +671,7 @@ def measure_pipeline(
         / 1e6
         / span,
         "sensor_clock_restarts": _epochs(d_b, "sensor") - _epochs(d_a, "sensor"),
+        "sensor_clock_end": d_b["pairing"]["sensor_clocks"],
         "robot_clock_restarts": _epochs(d_b, "robot") - _epochs(d_a, "robot"),
         "rss_hwm_mb": mem.get("VmHWM", 0) / 1024,
         "rss_mb": mem.get("VmRSS", 0) / 1024,
@@ -853,9 +903,10 @@ def run(
     nice: int | None = None,
 ) -> int:
     """Measure every rate, print the figures beside their targets; 1 if a target is missed.
-    ``nice``: run the daemon's session and this one (the simulated cell) at this nice value
-    (negative needs root; restored at the end): what the pipeline does when it gets the CPU it
-    asks for on a busy machine, as a production unit can arrange with ``Nice=``."""
+    ``nice``: run the daemon's session, the subscriber's and this one (the simulated cell) at
+    this nice value (negative needs root; restored at the end): what the pipeline does when it
+    gets the CPU it asks for on a busy machine, as a production unit can arrange with
+    ``Nice=``."""
     if nice is not None:
         own = Path("/proc/self/autogroup")
         saved = int(own.read_text().split()[-1]) if own.exists() else None
@@ -901,7 +952,10 @@ def _run(
             wd = Path(workdir) / f"{int(rate)}"
             wd.mkdir(parents=True, exist_ok=True)
         r = measure_pipeline(rate, duration_s, n_points, warmup_s, wd, prof, nice)
-        raw = measure_raw_zenoh(max(int(r["mean_payload_bytes"]), 64), runs=raw_runs)
+        size = int(r["mean_payload_bytes"])
+        if size <= 0:  # nothing was published: the nominal batch (10 ms ticks) instead
+            size = 64 + 12 * n_points * max(1, round(rate * 0.010))
+        raw = measure_raw_zenoh(size, runs=raw_runs)
         r["raw_zenoh"] = raw
         r["ratio_to_raw"] = r["subscriber_bytes_s"] / raw["bytes_s"]
         details.append(r)
@@ -936,6 +990,8 @@ def _run(
             Figure(f"{k} batches lost (seq gaps)", r["batch_gaps"], "", "0", r["batch_gaps"] == 0),
             Figure(f"{k} robot samples lost (of 500/s)", r["robot_samples_lost"], "", "-", None),
             Figure(f"{k} exposures the simulator skipped", r["sim_overrun"], "", "-", None),
+            Figure(f"{k} simulated robot lag p50", r["robot_lag_p50_ms"], "ms", "-", None),
+            Figure(f"{k} simulated robot lag p99", r["robot_lag_p99_ms"], "ms", "-", None),
             Figure(f"{k} latency p50", r["latency_p50_ms"], "ms", "-", None),
             Figure(
                 f"{k} latency p99",
@@ -967,8 +1023,14 @@ def _run(
             f"{r['mean_profiles_per_batch']:.1f} profiles per batch, "
             f"{r['mean_payload_bytes'] / 1e6:.2f} MB per payload; oldest-profile p99 "
             f"{r['oldest_p99_ms']:.2f} ms; clock restarts sensor {r['sensor_clock_restarts']} "
+            f"(at the end: locked "
+            f"{[c.get('locked') for c in r['sensor_clock_end'].values()]}, uncertainty "
+            f"{[round(c.get('uncertainty_us', 0), 1) for c in r['sensor_clock_end'].values()]} "
+            f"us) "
             f"robot {r['robot_clock_restarts']}; robot samples lost {r['robot_samples_lost']}; "
             f"simulator: overrun {r['sim_overrun']}, CPU {r['sim_sensor_cpu_pct']:.0f} %; "
+            f"daemon CPU by thread (% core) "
+            f"{ {k: round(v, 1) for k, v in r['thread_cpu_pct'].items() if v >= 0.5} }; "
             f"daemon page faults {r['minor_faults_s']:.0f}/s; load {r['loadavg']:.1f}; UTC "
             f"offset drift {r['utc_offset_change_us']:.1f} us",
             flush=True,

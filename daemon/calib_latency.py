@@ -33,7 +33,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -53,6 +53,9 @@ from .calib_table import (
     write_json_atomic,
 )
 from .config import Config
+
+if TYPE_CHECKING:
+    from .acquire import Acquisition
 
 __all__ = [
     "RESULT_FORMAT",
@@ -186,8 +189,11 @@ def calibrate_latency(
     *,
     confirmed: bool = False,
     progress: Progress | None = None,
+    acquisition: Acquisition | None = None,
 ) -> LatencyResult:
     """Run the latency procedure on the devices of ``cfg`` (see the module docstring).
+    ``acquisition``: an already built, unopened one (tests, benchmarks); default: one on the
+    devices of ``cfg``.
 
     Raises :class:`~.calib_table.MotionNotConfirmed` before anything moves,
     :class:`~.calib_table.ProcedureError` without a sensor calibration or when the sweeps cannot
@@ -206,7 +212,7 @@ def calibrate_latency(
     report = progress or (lambda done, total, text: None)
     t_start = time.monotonic()
 
-    with Acquisition(procedure_config(cfg)) as acq:
+    with acquisition or Acquisition(procedure_config(cfg)) as acq:
         report(0, total, "connecting, waiting for paired profiles")
         wait_until_pairing(acq)
         with guarded_motion(acq, "latency calibration"):

@@ -734,8 +734,11 @@ def calibrate_table(
     *,
     confirmed: bool = False,
     progress: Progress | None = None,
+    acquisition: Acquisition | None = None,
 ) -> TableResult:
     """Run the table procedure on the devices of ``cfg`` (see the module docstring).
+    ``acquisition``: an already built, unopened one (tests, benchmarks); default: one on the
+    devices of ``cfg`` with the points in the base frame.
 
     Raises :class:`MotionNotConfirmed` before anything moves (motion not enabled or not
     confirmed), :class:`ProcedureError` when the configuration lacks a table or the sensor
@@ -752,7 +755,7 @@ def calibrate_table(
     t_start = time.monotonic()
     report = progress or (lambda done, total, text: None)
 
-    with Acquisition(procedure_config(cfg)) as acq:
+    with acquisition or Acquisition(procedure_config(cfg)) as acq:
         total = len(opts.plan(0.0)) + 2
         report(0, total, "connecting, waiting for paired profiles")
         wait_until_pairing(acq)

@@ -139,7 +139,11 @@ class PairerConfig:
     encoder_capacity: int = 8192
     max_pending: int = 100_000
     """Profiles held at most; beyond, the oldest are dropped (bounded memory)."""
-    max_batch_profiles: int = 4096
+    max_batch_profiles: int = 512
+    """Profiles per released batch at most (more ready at once are split). Only a backlog
+    reaches it (5 kHz in 10 ms ticks makes 50): 512 x 2048 points keep a batch's arrays in
+    the tens of MB, which the allocator reuses, where 4096 made 100 MB+ arrays that were
+    mapped and page-faulted afresh for every batch just when the pipeline was behind."""
     sensor_clock: ClockConfig = field(default_factory=ClockConfig)
     robot_clock: ClockConfig = field(default_factory=ClockConfig)
     table_clock: ClockConfig = field(default_factory=ClockConfig)
