@@ -1089,7 +1089,12 @@ def main(argv: list[str] | None = None) -> int:
         "--profile", default=None, help="py-spy the daemon over each window (PREFIX.<rate>.txt)"
     )
     ap.add_argument("--workdir", default=None, help="keep configs and daemon logs here")
-    ap.add_argument("--nice", type=int, default=None, help="run the daemon at this nice value")
+    ap.add_argument(
+        "--nice",
+        type=int,
+        default=None,
+        help="run the daemon, subscriber and cell at this nice value (root)",
+    )
     ns = ap.parse_args(args)
     rates = tuple(float(x) for x in ns.rates.split(","))
     return run(
