@@ -12,6 +12,7 @@ from wristscan.daemon.plyio import read_ply
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(600)
 def test_demo_writes_a_merged_scan(tmp_path: Path) -> None:
     out = tmp_path / "scan.ply"
     res = subprocess.run(
