@@ -20,6 +20,14 @@ loopback, the real drivers, the synchroniser, the sweeps and the fits. Truth:
 Targets: latency within 0.1 ms of 1.5 ms; table axis tilt within 0.01 degree (the angle between
 the fitted and the true axis, so direction errors count whichever way they lean).
 
+The latency is also compared with the time offset the pairing really had, measured from the
+simulator's ground truth during the sweeps (true instant of the robot pose each profile was
+given minus its true exposure; :func:`wristscan.daemon.calib_latency.pairing_truth_tap`). The
+two agree only when the simulated sensor sends on time: a one-way clock mapping cannot tell a
+late send from a longer latency, and the simulated sensor sends late whenever it waits for the
+robot's or the table's truth (a busy host), so then the first target misses by that wait while
+the second shows whether the procedure measured what the pairing needs.
+
 Run: ``.venv/bin/python benchmarks/calibration_table_latency.py [--json out.json] [--seed N]``;
 exits 1 on a miss.
 """
@@ -38,7 +46,12 @@ from typing import Any
 import numpy as np
 
 from wristscan.calib import se3
-from wristscan.daemon.calib_latency import LatencyOptions, calibrate_latency
+from wristscan.daemon.calib_latency import (
+    LatencyOptions,
+    calibrate_latency,
+    pairing_truth_tap,
+    truth_offset_s,
+)
 from wristscan.daemon.calib_sensor import iso9283_axis_sigma
 from wristscan.daemon.calib_table import (
     TableOptions,
@@ -63,6 +76,10 @@ from _report import Figure, report
 TRUE_LATENCY_S = 0.0015
 UR5E_RP_M = 3e-5
 SENSOR_NOISE_M = 20e-6
+N_POINTS = 512
+"""Points per profile: the ball's centre is far more precise than the robot either way; fewer
+points keep the simulated sensor on time on a shared machine."""
+RATE_HZ = 1000.0
 BALL_RADIUS_M = 0.0127
 
 
@@ -71,7 +88,13 @@ def cell_config(folder: Path, *, repeatability_m: float, seed: int) -> Config:
     doc = free_sim_config(
         {
             "sensor": {"latency_s": 0.0},  # the procedure is not told
-            "sim.sensor": {"latency_s": TRUE_LATENCY_S, "noise_m": SENSOR_NOISE_M, "seed": seed},
+            "sim.sensor": {
+                "latency_s": TRUE_LATENCY_S,
+                "noise_m": SENSOR_NOISE_M,
+                "seed": seed,
+                "n_points": N_POINTS,
+                "rate_hz": RATE_HZ,
+            },
             "sim.controller": {"repeatability_m": repeatability_m},
             "sim.scene": {"ball_radius_m": BALL_RADIUS_M},
             "calibration": {"file": "s2f.json"},
@@ -98,7 +121,10 @@ def write_sensor_calibration(cfg: Config, s2f: np.ndarray) -> None:
 
 
 def _spec(cfg: Config, start_above: str, seed: int) -> CellSpec:
-    spec = simulated_cell_spec(cfg, start_above=start_above)
+    # The simulated sensor computes its exposures every 0.2 ms (default 1 ms): it then sends
+    # them as soon as the robot's truth covers them, which keeps it from sending later than
+    # its nominal latency (what it cannot help adds to the pairing offset, see the docs).
+    spec = simulated_cell_spec(cfg, start_above=start_above, batch_s=2e-4)
     return replace(spec, controller=replace(spec.controller, noise_seed=seed))
 
 
@@ -114,22 +140,25 @@ def bench_latency(folder: Path, repeatability_m: float, seed: int, repeats: int)
     spec = _spec(cfg, "ball", seed)
     write_sensor_calibration(cfg, spec.sensor.sensor2flange_matrix())
     with SimulatedCell(spec) as cell:
-        truth = float(cell.truth()["sensor_latency_s"])
+        assert cell.sensor is not None and cell.controller is not None
+        nominal = float(cell.truth()["sensor_latency_s"])
+        tap = pairing_truth_tap(cfg, cell.sensor.info(), cell.controller.host_time_ns(0.0))
         res = calibrate_latency(
             cfg,
             LatencyOptions(repeats=repeats),
             confirmed=True,
             progress=_progress("latency"),
+            acquisition=tap,
         )
+        actual = truth_offset_s(tap, res)
     return {
-        "truth_s": truth,
+        "nominal_s": nominal,
+        "actual_s": actual,
         "latency_s": res.latency_s,
         "std_s": res.std_s,
         "rms_m": res.estimate.rms_m,
         "n_sweeps": res.estimate.n_sweeps,
         "duration_s": res.duration_s,
-        "along_um": (1e6 * res.along_motion_m()).tolist(),
-        "speeds_mm_s": (1e3 * res.signed_speeds_m_s()).tolist(),
     }
 
 
@@ -191,10 +220,19 @@ def run(
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.monotonic()
         lat = bench_latency(Path(tmp), repeatability_m, seed, repeats)
-        err = lat["latency_s"] - lat["truth_s"]
+        err = lat["latency_s"] - lat["nominal_s"]
+        err_actual = lat["latency_s"] - lat["actual_s"]
         figs += [
-            Figure("latency estimate", lat["latency_s"] * 1e3, "ms", "1.5", None),
-            Figure("latency error", abs(err) * 1e3, "ms", "<= 0.1", abs(err) <= 1e-4),
+            Figure("latency estimate", lat["latency_s"] * 1e3, "ms", "", None),
+            Figure("latency error vs 1.5 ms", abs(err) * 1e3, "ms", "<= 0.1", abs(err) <= 1e-4),
+            Figure("pairing offset the sim really had", lat["actual_s"] * 1e3, "ms", "", None),
+            Figure(
+                "latency error vs that",
+                abs(err_actual) * 1e3,
+                "ms",
+                "<= 0.1",
+                abs(err_actual) <= 1e-4,
+            ),
             Figure("latency 1 sigma (fit)", lat["std_s"] * 1e3, "ms", "", None),
             Figure("latency sweeps", lat["n_sweeps"], "", "", None),
             Figure("latency fit rms", lat["rms_m"] * 1e6, "um", "", None),

@@ -26,6 +26,7 @@ procedure (:mod:`.calib_table`).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import time
@@ -63,6 +64,10 @@ __all__ = [
     "LatencyResult",
     "LatencySweep",
     "calibrate_latency",
+    "latency_report",
+    "outlier_sweeps",
+    "pairing_truth_tap",
+    "truth_offset_s",
     "write_latency_result",
 ]
 
@@ -252,14 +257,30 @@ def calibrate_latency(
                         100 * ball.speed_spread,
                     )
                 sweeps.append(LatencySweep(v, d, ball))
+            report(len(plan) + 2, total, "fitting the latency")
+            est = _fit(sweeps)
+            bad = outlier_sweeps(est)
+            for i in bad:
+                # One sweep far off the others: its poses were wrong for part of it (a stalled
+                # stream, a clock hiccup); measure it again rather than let it pull the fit.
+                s = sweeps[i]
+                off = float(np.linalg.norm(est.residuals[i])) * 1e6
+                report(len(plan) + 2, total, f"sweep {i + 1} is {off:.0f} um off: sweeping again")
+                ball = scanner.measure(
+                    centre,
+                    speed_m_s=s.speed_m_s,
+                    margin_m=opts.margin_m,
+                    direction=s.direction,
+                    seed=1000 + i,
+                )
+                ball = dataclasses.replace(ball, rescans=s.ball.rescans + ball.rescans + 1)
+                sweeps[i] = LatencySweep(s.speed_m_s, s.direction, ball)
+            if bad:
+                est = _fit(sweeps)
+                still = outlier_sweeps(est)
+                if still:
+                    log.warning("sweeps %s stay off the others", [i + 1 for i in still])
             scanner.move_to(centre, 0.0)
-        report(len(plan) + 2, total, "fitting the latency")
-        P = np.stack([s.ball.centre for s in sweeps])
-        V = np.stack([s.ball.velocity_m_s for s in sweeps])
-        try:
-            est = estimate_latency(P, V)
-        except ValueError as exc:
-            raise ProcedureError(f"latency fit failed: {exc}") from None
         report(total, total, "done")
         return LatencyResult(
             configured_latency_s=float(cfg.sensor.latency_s),
@@ -272,6 +293,27 @@ def calibrate_latency(
             duration_s=time.monotonic() - t_start,
             config_source=cfg.source,
         )
+
+
+def _fit(sweeps: Sequence[LatencySweep]) -> LatencyEstimate:
+    P = np.stack([s.ball.centre for s in sweeps])
+    V = np.stack([s.ball.velocity_m_s for s in sweeps])
+    try:
+        return estimate_latency(P, V)
+    except ValueError as exc:
+        raise ProcedureError(f"latency fit failed: {exc}") from None
+
+
+def outlier_sweeps(est: LatencyEstimate, k: float = 5.0) -> list[int]:
+    """Sweeps whose residual (norm) exceeds ``median + k * robust sigma`` and three times the
+    median: one bad sweep among many."""
+    r = np.linalg.norm(est.residuals, axis=1)
+    if r.shape[0] < 4:
+        return []
+    med = float(np.median(r))
+    sigma = 1.4826 * float(np.median(np.abs(r - med)))
+    limit = max(med + k * sigma, 3.0 * med)
+    return [int(i) for i in np.flatnonzero(r > limit)]
 
 
 def _capped(speeds: Sequence[float], cap: float) -> list[float]:
@@ -385,3 +427,70 @@ def latency_report(result: LatencyResult, subtitle: str = "") -> Any:
     else:
         rep.text("(figures need matplotlib: pip install 'wristscan[plot]')")
     return rep
+
+
+# --------------------------------------------------------------------------------------------
+# Ground truth on the simulated cell (tests, benchmarks)
+
+
+def pairing_truth_tap(
+    cfg: Config, sensor_info: dict[str, Any], controller_start_ns: int
+) -> Acquisition:
+    """An :class:`~.acquire.Acquisition` on the simulated cell that also measures, from the
+    simulator's ground truth, the time offset the pairing really has: for every paired profile,
+    the true instant of the robot pose it was given minus its true exposure instant.
+
+    That is what ``[sensor] latency_s`` must absorb (exposure to stamp, the smallest transport
+    delay of the profiles, and the robot stream's own, see docs/sync.md), which the simulator's
+    nominal ``latency_s`` only equals when its sensor sends on time. ``sensor_info`` is
+    ``SimulatedSensor.info()``; ``controller_start_ns`` the host time of controller time 0.
+    Read the result with ``offset_s(acq, windows)`` (:func:`truth_offset_s`).
+    """
+    from .acquire import Acquisition
+
+    t0 = int(sensor_info["t0_ns"])
+    period = float(sensor_info["period_ns"])
+    base = int(sensor_info["counter_base"])
+
+    class _Tap(Acquisition):
+        def __init__(self) -> None:
+            super().__init__(cfg)
+            self.truth_rows: list[NDArray[np.int64]] = []
+
+        def _offer(self, batch: Any) -> None:
+            # In the pipeline's worker thread, the one that feeds the robot clock: the mapping
+            # read here is the one the batch was paired with.
+            clock = self.pipeline.pairer.robot_clock
+            if clock.locked:
+                c = clock.to_device(batch.exposure_ns)
+                exposure = t0 + np.rint((batch.frame_counter + base) * period).astype(np.int64)
+                offset = (controller_start_ns + c) - exposure
+                self.truth_rows.append(np.stack([batch.exposure_ns, offset], axis=1))
+            super()._offer(batch)
+
+    return _Tap()
+
+
+def truth_offset_s(acq: Acquisition, result: LatencyResult) -> float:
+    """The true pairing offset (s) that ``result`` should have found, from an acquisition of
+    :func:`pairing_truth_tap`: per sweep, the median offset of the profiles that saw the ball;
+    averaged with the weights the least-squares fit gives the sweeps (the squared centred
+    velocity), so that an offset that wanders during the run is compared like with like. NaN
+    without data."""
+    rows = getattr(acq, "truth_rows", [])
+    if not rows:
+        return float("nan")
+    data = np.concatenate(rows)
+    V = np.stack([s.ball.velocity_m_s for s in result.sweeps])
+    w = np.sum((V - V.mean(axis=0)) ** 2, axis=1)
+    taus, weights = [], []
+    for s, wi in zip(result.sweeps, w, strict=True):
+        speed = float(np.linalg.norm(s.ball.velocity_m_s))
+        half = round(1e9 * min(1.0, 0.0127 / max(speed, 1e-3)))
+        inside = np.abs(data[:, 0] - s.ball.t_mid_ns) <= half
+        if inside.any():
+            taus.append(float(np.median(data[inside, 1])) * 1e-9)
+            weights.append(float(wi))
+    if not taus or sum(weights) <= 0:
+        return float("nan")
+    return float(np.average(taus, weights=weights))

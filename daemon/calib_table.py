@@ -76,12 +76,20 @@ __all__ = [
     "TableResult",
     "ball_from_sweep",
     "calibrate_table",
+    "direction_cov",
+    "guarded_motion",
     "identities",
     "load_sensor_calibration",
     "procedure_config",
     "require_motion",
+    "residual_components",
     "simulated_cell_spec",
     "table_calibration",
+    "table_report",
+    "table_truth",
+    "tilt_sigma_deg",
+    "wait_until_pairing",
+    "write_json_atomic",
 ]
 
 log = logging.getLogger(__name__)
@@ -94,6 +102,8 @@ Progress = Callable[[int, int, str], None]
 _MIN_BALL_POINTS = 200
 _SETTLE_TIMEOUT_S = 20.0
 _SWEEP_TRIES = 3
+_RMS_OUTLIER = 3.0
+"""A sweep whose sphere-fit rms exceeds this many times the typical one is repeated."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -339,6 +349,7 @@ class BallScanner:
             orientation = self.current_sensor2base()[:3, :3]
         self.R = np.asarray(orientation, dtype=np.float64)
         self.sweeps = 0
+        self._rms: list[float] = []
 
     # --- geometry ---------------------------------------------------------------------------
     def current_sensor2base(self) -> FloatArray:
@@ -445,6 +456,16 @@ class BallScanner:
                     f"{exc}; the synchroniser dropped {dropped} profiles during the sweep "
                     "(host overloaded, or the robot stream stalls)"
                 ) from None
+            typical = float(np.median(self._rms)) if len(self._rms) >= 2 else math.inf
+            if ball.rms_m > _RMS_OUTLIER * typical and not last:
+                # A distorted ball: the poses of part of the sweep were wrong (a stalled stream).
+                log.warning(
+                    "sphere fit rms %.1f um against %.1f um typical: sweeping again",
+                    ball.rms_m * 1e6,
+                    typical * 1e6,
+                )
+                continue
+            self._rms.append(ball.rms_m)
             return dataclasses.replace(ball, rescans=attempt)
         raise AssertionError("unreachable")
 
@@ -723,8 +744,9 @@ def _predict(centres: list[FloatArray], angles: list[float], theta: float) -> Fl
             log.debug("no circle yet (%s): extrapolating", exc)
     # Two points (or a failed circle): straight extrapolation along the last chord.
     c1, c2 = centres[-2], centres[-1]
-    a1, a2 = angles[-2], angles[-1]
-    step = (theta - a2) / (a2 - a1) if a2 != a1 else 0.0
+    # Encoder angles may wrap between readings: compare them modulo a turn.
+    d21 = math.remainder(angles[-1] - angles[-2], 2 * math.pi)
+    step = math.remainder(theta - angles[-1], 2 * math.pi) / d21 if d21 != 0 else 0.0
     return np.asarray(c2 + step * (c2 - c1))
 
 

@@ -622,11 +622,6 @@ def test_an_unreachable_plan_is_refused_before_anything_moves(cell_scan: dict[st
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    reason="known simulator bug: in some runs the simulated sensor ray-casts table-mounted parts "
-    "at the table's old angle after a turn (see the issue 9 note); the scan code is not at fault",
-    strict=False,
-)
 def test_recorded_profiles_match_the_scene_from_their_paired_poses(
     cell_scan: dict[str, Any],
 ) -> None:
@@ -656,11 +651,6 @@ def test_recorded_profiles_match_the_scene_from_their_paired_poses(
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    reason="known simulator bug: in some runs the simulated sensor ray-casts table-mounted parts "
-    "at the table's old angle after a turn (see the issue 9 note); the scan code is not at fault",
-    strict=False,
-)
 def test_scan_on_the_simulated_cell_writes_aligned_clouds(cell_scan: dict[str, Any]) -> None:
     from wristscan.daemon.plyio import read_ply
 
@@ -694,11 +684,6 @@ def test_scan_on_the_simulated_cell_writes_aligned_clouds(cell_scan: dict[str, A
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    reason="known simulator bug: in some runs the simulated sensor ray-casts table-mounted parts "
-    "at the table's old angle after a turn (see the issue 9 note); the scan code is not at fault",
-    strict=False,
-)
 def test_icp_corrections_are_small_with_the_true_calibration_and_flag_a_wrong_one(
     cell_scan: dict[str, Any],
 ) -> None:

@@ -60,7 +60,7 @@ class SimulatedCell:
                 self.spec.sensor,
                 self.scene,
                 robot_ring=self.robot_ring.name,
-                table_ring=self.table_ring.name if self.table_ring else None,
+                table_ring=self.table_ring.name if self.table_ring is not None else None,
             ).start()
         except BaseException:
             self.stop()
