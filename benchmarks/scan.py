@@ -64,7 +64,14 @@ from wristscan.daemon.scanjob import (
 )
 from wristscan.daemon.scanplan import ScanPlan, describe_plan, down_matrix, generate_plan
 from wristscan.daemon.simcell import dump_toml, free_sim_config, start_cell
-from wristscan.drivers.sim.scene import Box, Cylinder, Primitive, Scene, TriangleMesh
+from wristscan.drivers.sim.scene import (
+    Box,
+    Cylinder,
+    Primitive,
+    Scene,
+    TriangleMesh,
+    demo_scene,
+)
 
 FloatArray = NDArray[np.float64]
 
@@ -176,40 +183,33 @@ def visible_samples(
 # The simulated cell itself: do the profiles match the scene seen from their paired poses?
 
 
-def sim_consistency(
-    scene: Scene, recorded: Any, sensor2flange: FloatArray, limit_m: float = 0.1e-3
+def bad_profiles(
+    scene: Scene, recorded: Any, cal: ScanCalibration, plan: ScanPlan, limit_m: float = 0.1e-3
 ) -> tuple[list[NDArray[np.bool_]], list[float]]:
-    """Per pass: which profiles disagree with the true scene seen from their paired robot pose
-    at the pass's table angle (median |z - z_true| over the profile above ``limit_m``), and the
-    median |z - z_true| (m) over the pass. Profiles the simulator ray-cast from a stale robot
-    pose (it falls behind on a loaded machine: "truth ring does not cover some exposures") or
-    that the synchroniser paired with a wrong instant show here, independently of the merge."""
-    bad_masks, medians = [], []
-    for r in recorded:
+    """Per pass: the profiles whose points (inside the plan's box, aligned with the true
+    calibrations) lie off the true surface (90th percentile of the distance above ``limit_m``),
+    and the pass's median distance (m). A profile paired with a wrong instant (the simulator
+    falling behind on a loaded machine: "truth ring does not cover some exposures", or a
+    synchroniser error) shows here, before any merge: along the motion it shows on the faces
+    that are not parallel to it."""
+    masks, medians = [], []
+    assert plan.crop is not None
+    lo, hi = np.asarray(plan.crop.min_m), np.asarray(plan.crop.max_m)
+    for r, c in zip(recorded, align_passes(recorded, cal, plan.frame), strict=True):
         sw = r.sweep
-        n_prof = sw.n_profiles
-        n_pts = sw.y.size // max(n_prof, 1)
-        # The pipeline keeps whole profiles in order: (P, N) with the sensor's fixed lateral grid.
-        Y = sw.y.reshape(n_prof, n_pts)
-        Z = np.where(sw.valid, sw.z, np.nan).reshape(n_prof, n_pts)
-        grid = np.nanmedian(np.where(sw.valid.reshape(n_prof, n_pts), Y, np.nan), axis=0)
-        grid = np.where(np.isfinite(grid), grid, 0.0)
-        origins = np.column_stack([np.zeros(n_pts), grid, np.zeros(n_pts)])
-        dirs = np.tile([0.0, 0.0, 1.0], (n_pts, 1))
-        per = np.zeros(n_prof)
-        errs = []
-        for a in range(0, n_prof, 256):
-            S = sw.flange2base[a : a + 256] @ sensor2flange
-            t, _ = scene.raycast_bundles(S, origins, dirs, r.table_angle_rad or 0.0)
-            e = np.abs(Z[a : a + 256] - t)
-            e = np.where(np.isnan(Z[a : a + 256]), np.nan, np.where(np.isfinite(e), e, 1.0))
-            with np.errstate(all="ignore"):
-                per[a : a + 256] = np.nan_to_num(np.nanmedian(e, axis=1), nan=0.0)
-            errs.append(e[np.isfinite(e)])
-        bad_masks.append(per > limit_m)
-        allerr = np.concatenate(errs)
-        medians.append(float(np.median(allerr)) if allerr.size else math.inf)
-    return bad_masks, medians
+        idx = sw.profile_index[sw.valid & np.isfinite(sw.y) & np.isfinite(sw.z)]
+        inside = np.all((c.xyz >= lo) & (c.xyz <= hi), axis=1)
+        d = part_distance(scene, c.xyz[inside])
+        idx = idx[inside]
+        p90 = np.zeros(sw.n_profiles)
+        order = np.argsort(idx, kind="stable")
+        cuts = np.flatnonzero(np.diff(idx[order])) + 1
+        for grp in np.split(order, cuts):
+            if grp.size:
+                p90[idx[grp[0]]] = np.percentile(d[grp], 90)
+        masks.append(p90 > limit_m)
+        medians.append(float(np.median(d)) if d.size else math.inf)
+    return masks, medians
 
 
 def _write_truth(folder: Path, truth: dict[str, Any]) -> None:
@@ -281,123 +281,161 @@ def run(speed_m_s: float = 0.02, keep: Path | None = None) -> int:
         cell.stop()
     print("\n".join(report_lines(res.report)))
     if keep is not None:
-        with open(folder / "recorded.pkl", "wb") as fh:  # for offline analysis
-            pickle.dump((res.recorded, res.calibration, plan, truth), fh)
-    scene = cell.scene
+        with open(folder / "recorded.pkl", "wb") as fh:  # for --replay
+            pickle.dump((res.recorded, res.calibration, plan, truth, res.duration_s), fh)
+    return evaluate(res.recorded, res.calibration, plan, truth, res.duration_s)
+
+
+@dataclasses.dataclass
+class _Merged:
+    dev_before: float
+    dev_after: float
+    shifts: list[float]
+    rots: list[float]
+    unmeasured: int
+    after: FloatArray
+
+
+def _merge_figures(
+    scene: Scene, recorded: Any, cal: ScanCalibration, plan: ScanPlan, opts: MergeOptions
+) -> _Merged:
+    """Merge as run_scan does; deviation of the merged clouds (voxel 0.25 mm) from the true
+    surface before and after ICP, and the corrections."""
+    clouds = align_passes(recorded, cal, plan.frame, plan)
+    merge = merge_passes(clouds, opts)
+
+    def merged(cs: Any) -> FloatArray:
+        return voxel_mean(np.concatenate([c.xyz for c in cs]), opts.voxel_m)[0]
+
+    before = merged(clouds)
+    after = merged(corrected_clouds(clouds, merge))
+    ok = [c for c in merge.corrections if c.status != "not measured"]
+    return _Merged(
+        rms(part_distance(scene, before)),
+        rms(part_distance(scene, after)),
+        [c.shift_m for c in ok],
+        [c.rotation_deg for c in ok],
+        len(merge.corrections) - len(ok),
+        after,
+    )
+
+
+def evaluate(
+    recorded: Any, cal: ScanCalibration, plan: ScanPlan, truth: dict[str, Any], duration_s: float
+) -> int:
+    """The figures of a recorded scan (the merge is computed again, as run_scan does it).
+
+    The cell is checked first: a profile whose points lie off the true surface before any merge
+    was paired with a wrong instant (the simulator falls behind on a loaded machine). The
+    issue's figures are computed without such profiles, and also as recorded (information), so
+    that a fault of the cell is told apart from one of the merge."""
+    scene = demo_scene(table_zero2base=np.array(truth["table_zero2base"]))
     opts = MergeOptions()
-    cal = res.calibration
-
-    # Deviation from the true surface: merged clouds (voxel 0.25 mm) before and after ICP.
-    def merged(clouds: Any) -> FloatArray:
-        return voxel_mean(np.concatenate([c.xyz for c in clouds]), opts.voxel_m)[0]
-
-    before = merged(res.clouds)
-    after = merged(corrected_clouds(res.clouds, res.merge))
-    dev_before = rms(part_distance(scene, before))
-    dev_after = rms(part_distance(scene, after))
-    raw = np.concatenate([c.xyz for c in res.clouds])
-    sample = np.random.default_rng(0).choice(raw.shape[0], min(raw.shape[0], 500_000), False)
-    dev_raw = rms(part_distance(scene, raw[sample]))
-    assert res.merge is not None
-    shifts = [c.shift_m for c in res.merge.corrections if c.status != "not measured"]
-    rots = [c.rotation_deg for c in res.merge.corrections if c.status != "not measured"]
-    unmeasured = sum(c.status == "not measured" for c in res.merge.corrections)
+    bad, med = bad_profiles(scene, recorded, cal, plan)
+    n_bad = sum(int(b.sum()) for b in bad)
+    n_prof = sum(b.size for b in bad)
+    print(
+        "recorded passes: median distance to the true surface (um): "
+        + ", ".join(f"{e * 1e6:.1f}" for e in med)
+        + f"; profiles off it by > 0.1 mm (90th percentile): {n_bad} of {n_prof} ("
+        + ", ".join(str(int(b.sum())) for b in bad)
+        + ")"
+    )
+    as_recorded = _merge_figures(scene, recorded, cal, plan, opts)
+    clean_rec = [
+        dataclasses.replace(
+            r, sweep=dataclasses.replace(r.sweep, valid=r.sweep.valid & ~b[r.sweep.profile_index])
+        )
+        for r, b in zip(recorded, bad, strict=True)
+    ]
+    m = _merge_figures(scene, clean_rec, cal, plan, opts) if n_bad else as_recorded
 
     # The same passes with a sensor calibration off by 0.3 mm.
-    off_results: dict[str, tuple[int, float]] = {}
+    off_results: dict[str, int] = {}
     for axis, name in enumerate("XYZ"):
         delta = np.zeros(3)
         delta[axis] = OFF_M
-        s2f = cal.sensor2flange @ se3.make(t=delta)
-        off = ScanCalibration(s2f, cal.base2table, cal.encoder_offset_rad)
-        m = merge_passes(align_passes(res.recorded, off, res.frame, plan), opts)
-        off_results[name] = (
-            len(m.flagged),
-            max(c.shift_m for c in m.corrections if c.status != "not measured"),
+        off = ScanCalibration(
+            cal.sensor2flange @ se3.make(t=delta), cal.base2table, cal.encoder_offset_rad
         )
+        mo = merge_passes(align_passes(clean_rec, off, plan.frame, plan), opts)
+        off_results[name] = len(mo.flagged)
+        biggest = max(c.shift_m for c in mo.corrections if c.status != "not measured")
         print(
-            f"calibration off by 0.3 mm along sensor {name}: {len(m.flagged)} of "
-            f"{len(m.corrections)} passes flagged, largest correction "
-            f"{off_results[name][1] * 1e3:.3f} mm"
+            f"calibration off by 0.3 mm along sensor {name}: {len(mo.flagged)} of "
+            f"{len(mo.corrections)} passes flagged, largest correction {biggest * 1e3:.3f} mm"
         )
 
     # Coverage of the visible surface.
+    # (as recorded: removing the faulty profiles leaves holes by construction)
     vis, _ = visible_samples(scene, plan)
-    dist, _ = cKDTree(after).query(vis, k=1)
+    dist, _ = cKDTree(as_recorded.after).query(vis, k=1)
     covered = float(np.mean(dist <= 0.5e-3))
     g = plan.generator or {}
     n_angles = len({p.table_deg for p in plan.passes})
     print(
-        f"{len(res.recorded)} passes at {n_angles} table angles, {len(after)} merged points; "
-        f"raw points deviate {dev_raw * 1e6:.1f} um RMS (sensor noise 20 um); "
+        f"{len(recorded)} passes at {n_angles} table angles, {len(m.after)} merged points, "
         f"{vis.shape[0]} visible surface samples"
     )
-    bad, sim_err = sim_consistency(scene, res.recorded, np.array(truth["sensor2flange"]))
-    n_bad = sum(int(b.sum()) for b in bad)
-    n_prof = sum(b.size for b in bad)
-    print(
-        "simulated cell: median |z - z_true| per pass from its paired pose (um): "
-        + ", ".join(f"{e * 1e6:.1f}" for e in sim_err)
-        + f"; profiles off by > 0.1 mm: {n_bad} of {n_prof} ("
-        + ", ".join(str(int(b.sum())) for b in bad)
-        + ")"
-    )
-    if n_bad:
-        # The same figure without the profiles the cell itself got wrong (information only).
-        clean_rec = [
-            dataclasses.replace(
-                r,
-                sweep=dataclasses.replace(r.sweep, valid=r.sweep.valid & ~b[r.sweep.profile_index]),
-            )
-            for r, b in zip(res.recorded, bad, strict=True)
-        ]
-        clean = merged(corrected_clouds(align_passes(clean_rec, cal, res.frame, plan), res.merge))
-        print(
-            "without those profiles: merged deviation after ICP "
-            f"{rms(part_distance(scene, clean)) * 1e3:.4f} mm RMS"
-        )
+    tag = " (cell faults removed)" if n_bad else ""
     figures = [
         Figure(
-            "profiles the cell got wrong (> 0.1 mm from the paired pose's view)",
+            "profiles off the true surface before any merge",
             n_bad,
             "",
-            "0 (else the cell failed, not the merge)",
+            "0 (else the cell failed)",
             n_bad == 0,
         ),
         Figure(
             f"passes (at {n_angles} table angles)",
-            len(res.recorded),
+            len(recorded),
             "",
             ">= 4 at >= 2 angles",
-            len(res.recorded) >= 4 and n_angles >= 2,
+            len(recorded) >= 4 and n_angles >= 2,
         ),
         Figure(
-            "merged deviation before ICP, RMS",
-            dev_before * 1e3,
+            "merged deviation before ICP, RMS" + tag,
+            m.dev_before * 1e3,
             "mm",
             "<= 0.05",
-            dev_before <= 0.05e-3,
+            m.dev_before <= 0.05e-3,
         ),
         Figure(
-            "merged deviation after ICP, RMS",
-            dev_after * 1e3,
+            "merged deviation after ICP, RMS" + tag,
+            m.dev_after * 1e3,
             "mm",
             "<= 0.03",
-            dev_after <= 0.03e-3,
+            m.dev_after <= 0.03e-3,
         ),
         Figure(
-            "largest ICP correction, true calibration",
-            max(shifts) * 1e3,
+            "largest ICP correction, true calibration" + tag,
+            max(m.shifts) * 1e3,
             "mm",
             "<= 0.02",
-            max(shifts) <= 0.02e-3 and unmeasured == 0,
+            max(m.shifts) <= 0.02e-3 and m.unmeasured == 0,
         ),
-        Figure("largest ICP rotation, true calibration", max(rots), "deg", "-", True),
+        Figure("largest ICP rotation, true calibration" + tag, max(m.rots), "deg", "-", None),
     ]
-    for name, (n_flag, _) in off_results.items():
+    if n_bad:
+        figures += [
+            Figure(
+                "  as recorded: deviation before ICP", as_recorded.dev_before * 1e3, "mm", "-", None
+            ),
+            Figure(
+                "  as recorded: deviation after ICP", as_recorded.dev_after * 1e3, "mm", "-", None
+            ),
+            Figure(
+                "  as recorded: largest ICP correction",
+                max(as_recorded.shifts) * 1e3,
+                "mm",
+                "-",
+                None,
+            ),
+        ]
+    for name, n_flag in off_results.items():
         figures.append(
             Figure(
-                f"0.3 mm off along sensor {name}: passes flagged",
+                f"0.3 mm off along sensor {name}: passes flagged" + tag,
                 n_flag,
                 "",
                 ">= 1 (flagged)",
@@ -426,7 +464,7 @@ def run(speed_m_s: float = 0.02, keep: Path | None = None) -> int:
             "<= 0.5",
             float(dist.max()) <= 0.5e-3,
         ),
-        Figure("scan duration", res.duration_s, "s", "-", True),
+        Figure("scan duration", duration_s, "s", "-", None),
     ]
     return report("scan jobs on the simulated cell", figures)
 
@@ -435,7 +473,14 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--speed-mm-s", type=float, default=20.0, help="pass speed (mm/s)")
     ap.add_argument("--keep", type=Path, default=None, help="keep the outputs in this folder")
+    ap.add_argument(
+        "--replay", type=Path, default=None, help="evaluate a recording kept with --keep"
+    )
     a = ap.parse_args(argv)
+    if a.replay is not None:
+        with open(a.replay, "rb") as fh:
+            recorded, cal, plan, truth, duration_s = pickle.load(fh)
+        return evaluate(recorded, cal, plan, truth, duration_s)
     return run(a.speed_mm_s * 1e-3, a.keep)
 
 

@@ -142,6 +142,7 @@ _MAX_JOINT_STEP_RAD = 0.6
 """Largest joint change allowed along a short linear move (a larger one means a branch flip or a
 singularity on the way)."""
 _MIN_WRIST_SIN = math.sin(math.radians(5.0))
+_MAX_ARM_CHANGE_RAD = math.radians(75.0)
 _LOO_MIN_GROUPS = 3
 _FIGURE_POINTS = 4000
 _BAND_WIDE_M = 8e-3
@@ -474,31 +475,47 @@ class OrientationPlan:
 
 @dataclass(frozen=True)
 class _Reach:
-    """Joint solutions of the approach, sweep start and sweep end of one location."""
+    """Joint solutions of the approach, sweep start and sweep end of one location, and of a pose
+    to pass through on the way to the approach (None: straight there)."""
 
     approach: FloatArray
     start: FloatArray
     end: FloatArray
+    via: FloatArray | None = None
 
 
 class _Kin:
-    """Reachability of flange poses for the plan: IK near a seed, wrist singularity, joint
-    continuity along short linear moves, TCP inside the workspace box."""
+    """Reachability of flange poses for the plan: IK near a seed, in the arm configuration of the
+    start pose (base, shoulder and elbow within ``_MAX_ARM_CHANGE_RAD`` of ``reference_q``: no
+    swinging the arm over), away from the wrist singularity, joint continuity along short linear
+    moves, TCP inside the workspace box (also along joint moves)."""
 
     def __init__(
         self,
         model: kinematics.DHParams,
         tcp2flange: FloatArray,
         workspace: tuple[FloatArray, FloatArray] | None,
+        reference_q: FloatArray | None = None,
     ) -> None:
         self.model = model
         self.tcp2flange = tcp2flange
         self.workspace = workspace
+        self.reference_q = None if reference_q is None else np.asarray(reference_q, float)
+
+    def _arm_ok(self, q: FloatArray) -> bool:
+        if self.reference_q is None:
+            return True
+        d = kinematics.wrap_angle(q[:3] - self.reference_q[:3])
+        return float(np.max(np.abs(d))) <= _MAX_ARM_CHANGE_RAD
 
     def ik(self, flange2base: FloatArray, seed: FloatArray) -> FloatArray | None:
         try:
             q = kinematics.inverse_nearest(self.model, flange2base, seed)
+            if not self._arm_ok(q) and self.reference_q is not None:
+                q = kinematics.inverse_nearest(self.model, flange2base, self.reference_q)
         except kinematics.Unreachable:
+            return None
+        if not self._arm_ok(q):
             return None
         if abs(math.sin(float(q[4]))) < _MIN_WRIST_SIN:
             return None
@@ -522,21 +539,45 @@ class _Kin:
             q = nxt
         return q
 
+    def joint_path(self, q0: FloatArray, q1: FloatArray, samples: int = 16) -> bool:
+        """Whether the TCP stays inside the workspace box along the joint move ``q0 -> q1`` (as
+        the driver checks it: joints interpolated linearly)."""
+        if self.workspace is None:
+            return True
+        t = np.linspace(0.0, 1.0, samples + 1)[1:, None]
+        F = kinematics.forward(self.model, q0[None, :] + t * (q1 - q0)[None, :])
+        p = (F @ self.tcp2flange)[:, :3, 3]
+        lo, hi = self.workspace
+        return not bool(np.any((p < lo) | (p > hi)))
+
     def sweep(
-        self, start: FloatArray, end: FloatArray, clearance: FloatArray, seed: FloatArray
+        self,
+        start: FloatArray,
+        end: FloatArray,
+        clearance: FloatArray,
+        seed: FloatArray,
+        via: FloatArray | None = None,
     ) -> _Reach | None:
-        """Approach (``start @ clearance``, joint move from ``seed``), start, end."""
+        """Approach (``start @ clearance``, joint move from ``seed``), start, end. When the
+        joint move would leave the workspace box, through the flange pose ``via`` (a hub, e.g.
+        above the ball), with the approach solved near it."""
         approach = start @ clearance
         qa = self.ik(approach, seed)
-        if qa is None:
-            return None
+        qv = None
+        if qa is None or not self.joint_path(seed, qa):
+            qv = None if via is None else self.ik(via, seed)
+            if qv is None or not self.joint_path(seed, qv):
+                return None
+            qa = self.ik(approach, qv)
+            if qa is None or not self.joint_path(qv, qa):
+                return None
         qs = self.linear(approach, start, qa)
         if qs is None:
             return None
         qe = self.linear(start, end, qs)
         if qe is None:
             return None
-        return _Reach(qa, qs, qe)
+        return _Reach(qa, qs, qe, qv)
 
 
 def _azimuth_order(n: int) -> list[int]:
@@ -1137,8 +1178,8 @@ class RobotCell:
             return None
         return np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
 
-    def planner(self) -> _Kin:
-        return _Kin(self.model, self.tcp2flange(), self.workspace())
+    def planner(self, reference_q: FloatArray | None = None) -> _Kin:
+        return _Kin(self.model, self.tcp2flange(), self.workspace(), reference_q)
 
     # --- motion ------------------------------------------------------------------------------
     def _call(self, fn: Callable[..., T], *args: Any) -> T:
@@ -1263,6 +1304,7 @@ class SensorCalibration:
         self.notes: list[str] = []
         self._location = 0
         self._reference = np.eye(4)
+        self._reference_q: FloatArray | None = None
         self._rate_hz = 0.0
         self._estimate: FloatArray | None = None
         self._repeated = 0
@@ -1563,8 +1605,9 @@ class SensorCalibration:
         assert self.nominal is not None
         X = self.nominal
         h = s.sweep_half_m
+        q_start = self.cell.joints()
         ball, F0 = self._find(X)
-        kin = self.cell.planner()
+        kin = self.cell.planner(q_start)
         depth = s.working_depth_m
 
         def clearance(Xe: FloatArray) -> FloatArray:
@@ -1578,9 +1621,17 @@ class SensorCalibration:
             Sc = p.sensor2base(F0 @ Xe, ball_e, depth)
             return Sc @ _tx(-h) @ inv, Sc @ _tx(h) @ inv
 
+        def hub(Xe: FloatArray, ball_e: FloatArray) -> FloatArray:
+            # Above the ball at the start orientation, well back: joint moves that would leave
+            # the workspace box go through here.
+            Rref_e = (F0 @ Xe)[:3, :3]
+            S = se3.make(Rref_e, ball_e - Rref_e @ np.array([0.0, 0.0, depth + 2 * s.clearance_m]))
+            return np.asarray(S @ se3.invert(Xe))
+
         def reachable(Xe: FloatArray, ball_e: FloatArray) -> Callable[[OrientationPlan], bool]:
             seed = self.cell.joints()
-            return lambda p: kin.sweep(*ends(p, Xe, ball_e), clearance(Xe), seed) is not None
+            via = hub(Xe, ball_e)
+            return lambda p: kin.sweep(*ends(p, Xe, ball_e), clearance(Xe), seed, via) is not None
 
         # (b) field-of-view locations at the start orientation
         Rref = (F0 @ X)[:3, :3]
@@ -1591,8 +1642,8 @@ class SensorCalibration:
         for g in targets:
             Sc = se3.make(Rref, ball - Rref @ g)
             start, end = Sc @ _tx(-h) @ invX, Sc @ _tx(h) @ invX
-            q_start = kin.ik(start, q)
-            q_end = None if q_start is None else kin.linear(start, end, q_start)
+            q_at = kin.ik(start, q)
+            q_end = None if q_at is None else kin.linear(start, end, q_at)
             if q_end is None:
                 raise CalibrationFailed(
                     f"field-of-view location y {g[1] * 1e3:+.1f} mm, z {g[2] * 1e3:.1f} mm is out "
@@ -1670,10 +1721,12 @@ class SensorCalibration:
                 total,
             )
             start, end = ends(p, Xe, ball)
-            r = kin.sweep(start, end, clearance(Xe), self.cell.joints())
+            r = kin.sweep(start, end, clearance(Xe), self.cell.joints(), hub(Xe, ball))
             if r is None:
                 self._note("orient", f"{p.label}: unreachable with the updated estimate; skipped")
                 continue
+            if r.via is not None:
+                self.cell.move_j(r.via, s.joint_speed_rad_s, s.joint_accel_rad_s2)
             self.cell.move_j(r.approach, s.joint_speed_rad_s, s.joint_accel_rad_s2)
             self.cell.move_l(start, s.travel_speed_m_s, s.travel_accel_m_s2)
             loc = self._next_location()
@@ -1704,6 +1757,7 @@ class SensorCalibration:
                 f"only {len(visited)} orientations could be swept; at least 2 are needed"
             )
         self._reference = F0
+        self._reference_q = q_start
         self._estimate = Xe
         return [*sweeps, *tilt_sweeps], visited, F0
 
@@ -1713,7 +1767,7 @@ class SensorCalibration:
         X = joint.sensor2flange
         ball = joint.ball_centre_base
         F0 = self._reference
-        kin = self.cell.planner()
+        kin = self.cell.planner(self._reference_q)
         inv = se3.invert(X)
         clear = X @ _tz(-s.clearance_m) @ inv
         h = s.sweep_half_m
@@ -1721,13 +1775,22 @@ class SensorCalibration:
             p = OrientationPlan(f"check (az {az:.0f} deg)", az, tilt, roll)
             Sc = p.sensor2base(F0 @ X, ball, s.working_depth_m)
             start, end = Sc @ _tx(-h) @ inv, Sc @ _tx(h) @ inv
-            r = kin.sweep(start, end, clear, self.cell.joints())
+            Rref = (F0 @ X)[:3, :3]
+            via = (
+                se3.make(
+                    Rref, ball - Rref @ np.array([0.0, 0.0, s.working_depth_m + 2 * s.clearance_m])
+                )
+                @ inv
+            )
+            r = kin.sweep(start, end, clear, self.cell.joints(), via)
             if r is not None:
                 break
         else:
             self._note("check", "no reachable orientation for the check scan; skipped")
             return []
         self._say("check", f"check scan: {p.label}, tilt {tilt:.0f} deg, roll {roll:.0f} deg")
+        if r.via is not None:
+            self.cell.move_j(r.via, s.joint_speed_rad_s, s.joint_accel_rad_s2)
         self.cell.move_j(r.approach, s.joint_speed_rad_s, s.joint_accel_rad_s2)
         self.cell.move_l(start, s.travel_speed_m_s, s.travel_accel_m_s2)
         keep = _near_ball(X, ball, s.ball_radius_m, 3e-3)
@@ -1750,20 +1813,37 @@ class SensorCalibration:
     def _manual_sweep(
         self, stage: SweepStage, group: int, label: str, instruction: str
     ) -> RecordedSweep | None:
-        """Record one operator-driven sweep; None when the operator ends the stage."""
-        answer = self._ask(
-            f"{label}: {instruction} Press Enter to start recording ('done' ends this stage, "
-            "'quit' aborts)."
-        )
-        if answer in ("d", "done"):
-            return None
-        data, _ = self.cell.record_while(
-            lambda: self._ask(
-                "Recording: move the sensor along its X axis across the ball at constant "
-                "orientation, then press Enter."
+        """Record one operator-driven sweep; None when the operator ends the stage. A recording
+        without the ball, with gaps (profiles not paired) or over less than the ball's radius is
+        rejected and asked for again."""
+        R = self.s.ball_radius_m
+        while True:
+            answer = self._ask(
+                f"{label}: {instruction} Press Enter to start recording ('done' ends this stage, "
+                "'quit' aborts)."
             )
-        )
-        return self._reduce(data, stage, group, self._next_location(), 0, label)
+            if answer in ("d", "done"):
+                return None
+            data, _ = self.cell.record_while(
+                lambda: self._ask(
+                    "Recording: move the sensor along its X axis across the ball at constant "
+                    "orientation, then press Enter."
+                )
+            )
+            try:
+                rs = self._reduce(data, stage, group, self._next_location(), 0, label)
+            except CalibrationFailed as exc:
+                self._say(stage, f"rejected: {str(exc).removeprefix(label + ': ')}; repeat it")
+                continue
+            span, gap = ball_coverage(rs)
+            if span < R or gap > _MAX_GAP_R * R:
+                self._say(
+                    stage,
+                    f"rejected: the ball was seen over {span * 1e3:.1f} mm of travel with a "
+                    f"{gap * 1e3:.1f} mm gap; sweep across the whole ball and repeat it",
+                )
+                continue
+            return rs
 
     def _constant_orientation(self, rs: RecordedSweep) -> float:
         R = rs.sweep.flange2base[:, :3, :3]

@@ -135,7 +135,7 @@ def _print_result(result: SensorCalibrationResult, out: Path, report: Path | Non
     for n in result.notes:
         echo(f"  note: {n}")
     echo(f"calibration file {out}")
-    if report is not None:
+    if report is not None and report.exists():
         echo(f"report           {report}")
 
 

@@ -450,8 +450,8 @@ def test_automatic_calibration_on_the_simulated_cell(tmp_path: Path, sim_cell: A
     out, report = tmp_path / "s2f.json", tmp_path / "report.html"
     res = _cli([
         "calibrate", "sensor", "--config", str(path), "--yes", "--out", str(out),
-        "--report", str(report), "--speed-mm-s", "50", "--orientations", "4", "--nominal",
-        "p[0.062, 0.008, 0.197, 0, 0, 0]", "--no-loo",
+        "--report", str(report), "--speed-mm-s", "50", "--grid", "2", "--orientations", "4",
+        "--nominal", "p[0.062, 0.008, 0.197, 0, 0, 0]", "--no-loo",
     ])  # fmt: skip
     assert res.exit_code == 0, res.output
     calib = read_calibration(out, RobotIdentity("UR5e"), SensorIdentity("lpf1-udp", "1"))
@@ -459,7 +459,8 @@ def test_automatic_calibration_on_the_simulated_cell(tmp_path: Path, sim_cell: A
     assert np.linalg.norm(calib.transform[:3, 3] - truth[:3, 3]) < 0.2e-3
     assert _rot_err_deg(calib.transform, truth) < 0.1
     assert calib.parameters["check_centre_error_m"] < 0.2e-3
-    assert "[fov 9/13]" in res.output and "sensor2flange  p[" in res.output
+    assert "[fov 4/8]" in res.output and "[orient 8/8]" in res.output
+    assert "sensor2flange  p[" in res.output
     assert report.read_text().count("data:image/png") == 4
 
 
@@ -496,11 +497,15 @@ def test_manual_mode_records_while_the_operator_moves(tmp_path: Path, sim_cell: 
         asked.append(message)
         if message.startswith("Recording"):
             pendant.move_l(pose(places[state["k"]] @ se3.make(None, (h, 0, 0))), 0.05, 0.5)
-            state["k"] += 1
             return ""
         if message.startswith("Check scan"):
             return "skip"
-        # Jog to the next place: back off along the tool Z, joint move, approach.
+        # Jog to the place asked for: back off along the tool Z, joint move, approach. The
+        # prompts number the sweeps; a rejected one (a gap in the pairing on a busy host) is
+        # asked for again under the same number.
+        fov = re.match(r"fov (\d+)/", message)
+        ori = re.match(r"orientation (\d+)/", message)
+        state["k"] = int(fov.group(1)) - 1 if fov else 3 + int(ori.group(1)) if ori else -1
         S = places[state["k"]]
         start = S @ se3.make(None, (-h, 0, 0))
         away = start @ se3.make(None, (0, 0, -0.03)) @ inv
@@ -522,8 +527,8 @@ def test_manual_mode_records_while_the_operator_moves(tmp_path: Path, sim_cell: 
         )
     finally:
         pendant.close()
-    assert state["k"] == 7  # 4 field-of-view sweeps and 3 orientations
-    assert sum(m.startswith("Recording") for m in asked) == 7
+    assert state["k"] == 6  # 4 field-of-view sweeps and 3 orientations
+    assert sum(m.startswith("Recording") for m in asked) >= 7
     assert result.manual and len(result.sweeps) == 7 and result.check is None
     assert np.linalg.norm(result.sensor2flange[:3, 3] - X[:3, 3]) < 0.3e-3
     assert _rot_err_deg(result.sensor2flange, X) < 0.2
