@@ -327,7 +327,7 @@ def run(json_out: str | None = None, quick: bool = False, keep: str | None = Non
     figures: list[Figure] = []
     targets = not quick
 
-    print("session A: latency not told (configured 0, true 1.5 ms)")
+    print("session A: latency not told (configured 0, simulator 1.5 ms)")
     cfg, text = _config(SIM_RMS_ISO_M, 0.0)
     a, measured = _session("A", cfg, text, cs.settings_for(cfg, **overrides), workdir,
                            passes=True, latency=True)  # fmt: skip
@@ -336,9 +336,13 @@ def run(json_out: str | None = None, quick: bool = False, keep: str | None = Non
         if f.name.startswith("A: two passes, point"):
             f.ok, f.target = None, "(latency unset)"
     own = a.result.latency.offset_s if a.result.latency is not None else 0.0
-    figures.append(Figure("A: latency from the sweep pairs (true 1.5)", own * 1e3, "ms", "", None))
+    figures.append(
+        Figure("A: latency from the sweep pairs (simulator 1.5 + link)", own * 1e3, "ms", "", None)
+    )
     if measured is not None:
-        figures.append(Figure("A: latency procedure (true 1.5)", measured * 1e3, "ms", "", None))
+        figures.append(
+            Figure("A: latency procedure (simulator 1.5 + link)", measured * 1e3, "ms", "", None)
+        )
     est = measured if measured is not None else own
     print(f"session B: [sensor] latency_s = {est * 1e3:.3f} ms (measured after A)")
     cfg, _ = _config(SIM_RMS_ISO_M, max(0.0, est), text)

@@ -232,6 +232,10 @@ class Settings:
     """Retreat along sensor -Z before a reorientation (joint moves start and end there)."""
     bidirectional: bool = True
     """Sweep every location forwards and backwards (cancels a sensor latency error)."""
+    lateral_places: int = 2
+    """Places of the ball along the laser line at each tilted orientation: 2 (both ends of the
+    line) or 1 (alternately one end): the rotation about the sensor Z axis is seen only through
+    the ball's lateral offset."""
     sweep_retries: int = 4
     """Repeats of a sweep that came out with gaps (too few profiles paired)."""
     compensate_timing: bool = True
@@ -290,6 +294,8 @@ class Settings:
             )
         if self.fov_grid < 2:
             raise ValueError("the FOV grid needs at least 2 x 2 locations")
+        if self.lateral_places not in (1, 2):
+            raise ValueError("lateral_places must be 1 or 2")
         if self.n_orientations < 2:
             raise ValueError("at least 2 tilted orientations are needed (6 recommended)")
         if not 0 < self.min_tilt_deg <= self.tilt_deg < 90:
@@ -709,6 +715,38 @@ def ball_coverage(rs: RecordedSweep) -> tuple[float, float]:
     return float(pos[-1] - pos[0]), gap
 
 
+def _slice_recording(data: RecordedData, lo: int, hi: int) -> RecordedData:
+    """Profiles ``lo`` to ``hi - 1`` of a recording, with their points."""
+    keep = (data.profile_index >= lo) & (data.profile_index < hi)
+    return RecordedData(
+        y=data.y[keep],
+        z=data.z[keep],
+        valid=data.valid[keep],
+        profile_index=data.profile_index[keep] - lo,
+        flange2base=data.flange2base[lo:hi],
+        exposure_ns=data.exposure_ns[lo:hi],
+        table_angle=None if data.table_angle is None else data.table_angle[lo:hi],
+    )
+
+
+def split_round_trip(data: RecordedData, min_travel_m: float = 5e-3) -> list[RecordedData]:
+    """A recording that went across and came back (manual mode: "across the ball and back") as
+    its two legs, split where the travel along its main direction turns; any other recording
+    as is. The legs of a round trip are a forward/backward pair (see :func:`apparent_latency`)."""
+    P = data.n_profiles
+    if P < 10:
+        return [data]
+    T = data.flange2base[:, :3, 3]
+    d = T - T[0]
+    _, _, Vt = np.linalg.svd(d - d.mean(axis=0), full_matrices=False)
+    pos = d @ Vt[0]
+    turn = int(np.argmax(np.abs(pos)))
+    reach = abs(float(pos[turn]))
+    if reach < min_travel_m or abs(float(pos[-1])) > 0.4 * reach or turn in (0, P - 1):
+        return [data]
+    return [_slice_recording(data, 0, turn + 1), _slice_recording(data, turn, P)]
+
+
 def reduce_sweep(
     data: RecordedData,
     max_points: int,
@@ -814,6 +852,11 @@ def _origin_estimate(
     except (tcp.DegeneratePoses, ValueError):
         return None
     return np.asarray(p_tool, dtype=np.float64), np.asarray(p_world, dtype=np.float64)
+
+
+def _relabel(w: RecordedSweep, label: str) -> RecordedSweep:
+    suffix = {1: " fwd", -1: " bwd"}.get(w.direction, "")
+    return dataclasses.replace(w, label=label + suffix)
 
 
 def _base_label(label: str) -> str:
@@ -1029,17 +1072,14 @@ def inlier_masks(
     ]
 
 
-def inconsistent_locations(
+def location_offsets(
     sweeps: Sequence[RecordedSweep],
     joint: handeye.HandEyeResult,
     ball_radius_m: float,
-    floor_m: float = 10e-6,
-) -> dict[int, float]:
-    """Places whose passes put the ball elsewhere than the solution does: for each location, the
-    distance (m) from the calibrated ball centre to the mean of its passes' fitted centres (mapped
-    with the solution). Returned when above ``max(median + 5 robust sigma, 2.5 median,
-    floor_m)``: a pass whose time base slipped (a host too busy for the synchroniser) or a
-    robot that did not stand where it said. ``{location: distance}``."""
+) -> dict[int, FloatArray]:
+    """For each location, the mean of its passes' ball centres (fitted with the known radius on
+    the points mapped with the solution) minus the solution's ball centre: ``{location: (3,)}``
+    in metres, base frame. What the robot's repeatability and timing slips leave per place."""
     X, c = joint.sensor2flange, joint.ball_centre_base
     by_loc: dict[int, list[FloatArray]] = {}
     for w, m in zip(sweeps, joint.inliers, strict=True):
@@ -1048,10 +1088,36 @@ def inconsistent_locations(
             continue
         fit = sphere.fit_sphere(pts, radius=ball_radius_m, robust=None)
         by_loc.setdefault(w.location, []).append(np.asarray(fit.centre))
-    if len(by_loc) < 5:
+    return {k: np.mean(v, axis=0) - c for k, v in by_loc.items()}
+
+
+def observed_robot_sigma(offsets: Mapping[int, FloatArray]) -> float:
+    """Per-axis standard deviation (m) of the per-location offsets, robustly (from their median
+    squared length): the robot's repeatability as the data show it at the sensor. 0 with fewer
+    than 5 places."""
+    if len(offsets) < 5:
+        return 0.0
+    d2 = np.array([float(v @ v) for v in offsets.values()])
+    # For a 3-D Gaussian of per-axis sigma, |d|^2 / sigma^2 is chi-square(3): median 2.366.
+    return math.sqrt(float(np.median(d2)) / 2.366)
+
+
+def inconsistent_locations(
+    sweeps: Sequence[RecordedSweep],
+    joint: handeye.HandEyeResult,
+    ball_radius_m: float,
+    floor_m: float = 10e-6,
+    offsets: Mapping[int, FloatArray] | None = None,
+) -> dict[int, float]:
+    """Places whose passes put the ball elsewhere than the solution does: the distance (m) of
+    :func:`location_offsets`, returned when above ``max(median + 5 robust sigma, 2.5 median,
+    floor_m)``: a pass whose time base slipped (a host too busy for the synchroniser) or a
+    robot that did not stand where it said. ``{location: distance}``."""
+    off = location_offsets(sweeps, joint, ball_radius_m) if offsets is None else offsets
+    if len(off) < 5:
         return {}
-    locs = list(by_loc)
-    d = np.array([float(np.linalg.norm(np.mean(by_loc[k], axis=0) - c)) for k in locs])
+    locs = list(off)
+    d = np.array([float(np.linalg.norm(off[k])) for k in locs])
     med = float(np.median(d))
     mad = 1.4826 * float(np.median(np.abs(d - med)))
     limit = max(med + 5.0 * mad, 2.5 * med, floor_m)
@@ -1267,6 +1333,11 @@ class SensorCalibrationResult:
     configured_latency_s: float
     manual: bool
     duration_s: float
+    robot_sigma_m: float = 0.0
+    """Per-axis robot repeatability the covariance used (m): the larger of the data sheet's and
+    the observed one."""
+    observed_robot_sigma_m: float = 0.0
+    """Per-axis scatter of the places' ball centres (m), see :func:`observed_robot_sigma`."""
 
     @property
     def sensor2flange(self) -> FloatArray:
@@ -1308,6 +1379,7 @@ class SensorCalibration:
         self._rate_hz = 0.0
         self._estimate: FloatArray | None = None
         self._repeated = 0
+        self._robot_sigma = (settings.robot_sigma_m, 0.0)
 
     # --- helpers -----------------------------------------------------------------------------
     def _say(self, stage: str, message: str, step: int = 0, total: int = 0) -> None:
@@ -1456,7 +1528,8 @@ class SensorCalibration:
                     uncompensated = first
                     sweeps = compensate_timing(sweeps, latency)
                     first = quick_refine(sweeps, first, R)
-            bad = inconsistent_locations(sweeps, first, R)
+            offsets = location_offsets(sweeps, first, R)
+            bad = inconsistent_locations(sweeps, first, R, offsets=offsets)
             if bad and _can_drop(sweeps, set(bad)):
                 for loc, dist in bad.items():
                     name = _base_label(next(w.label for w in sweeps if w.location == loc))
@@ -1466,8 +1539,24 @@ class SensorCalibration:
                         "left out (a pass with a timing slip or a robot error)",
                     )
                 sweeps = [w for w in sweeps if w.location not in bad]
+            # The covariance takes the larger of the data sheet's repeatability and what the
+            # places' scatter shows (the robot's error at the sensor includes its orientation
+            # error times the sensor's distance from the flange).
+            observed = observed_robot_sigma({k: v for k, v in offsets.items() if k not in bad})
+            # The passes of a place share its error, while the solver's robot term takes every
+            # sweep's as independent: scaled by sqrt(passes per place) for the same variance of
+            # the place's mean.
+            passes = len(sweeps) / max(1, len({w.location for w in sweeps}))
+            robot_sigma = max(s.robot_sigma_m, observed * math.sqrt(passes))
+            self._say(
+                "solve",
+                f"robot repeatability per axis: {s.robot_sigma_m * 1e6:.1f} um (data sheet), "
+                f"{observed * 1e6:.1f} um (observed); the covariance uses "
+                f"{robot_sigma * 1e6:.1f} um",
+            )
             self._say("solve", f"two-step and joint solution on {len(sweeps)} sweeps")
-            two, joint = solve(sweeps, R, s.robot_sigma_m)
+            two, joint = solve(sweeps, R, robot_sigma)
+            self._robot_sigma = (robot_sigma, observed)
             if joint.advice:
                 self._note(
                     "solve", f"weakly constrained (condition {joint.condition:.1f}): {joint.advice}"
@@ -1546,6 +1635,8 @@ class SensorCalibration:
             configured_latency_s=self.configured_latency_s,
             manual=self.manual,
             duration_s=time.monotonic() - t0,
+            robot_sigma_m=self._robot_sigma[0],
+            observed_robot_sigma_m=self._robot_sigma[1],
         )
 
     # --- automatic mode ----------------------------------------------------------------------
@@ -1729,17 +1820,34 @@ class SensorCalibration:
                 self.cell.move_j(r.via, s.joint_speed_rad_s, s.joint_accel_rad_s2)
             self.cell.move_j(r.approach, s.joint_speed_rad_s, s.joint_accel_rad_s2)
             self.cell.move_l(start, s.travel_speed_m_s, s.travel_accel_m_s2)
-            loc = self._next_location()
             keep = _near_ball(Xe, ball, s.ball_radius_m, band)
-            tilt_sweeps.append(
-                self._sweep(start, end, "tilt", group, loc, 1, f"{p.label} fwd", keep)
-            )
-            last = end
-            if s.bidirectional:
-                tilt_sweeps.append(
-                    self._sweep(end, start, "tilt", group, loc, -1, f"{p.label} bwd", keep)
-                )
-                last = start
+            places = [(p, start, end)]
+            if s.lateral_places == 2:
+                # The same orientation with the ball at the other end of the laser line: reached
+                # by a lateral move at the sweep start, where the laser plane is clear of the ball.
+                p2 = dataclasses.replace(p, lateral_m=-p.lateral_m)
+                start2, end2 = ends(p2, Xe, ball)
+                q2 = kin.linear(start, start2, r.start)
+                if q2 is not None and kin.linear(start2, end2, q2) is not None:
+                    places.append((p2, start2, end2))
+                else:
+                    self._note("orient", f"{p.label}: the second lateral place is unreachable")
+            last = start
+            for k, (pk, a, b) in enumerate(places):
+                if k:
+                    self.cell.move_l(a, s.travel_speed_m_s, s.travel_accel_m_s2)
+                loc = self._next_location()
+                name = f"{pk.label} y {pk.lateral_m * 1e3:+.0f} mm"
+                tilt_sweeps.append(self._sweep(a, b, "tilt", group, loc, 1, f"{name} fwd", keep))
+                last = b
+                if s.bidirectional:
+                    tilt_sweeps.append(
+                        self._sweep(b, a, "tilt", group, loc, -1, f"{name} bwd", keep)
+                    )
+                    last = a
+                elif k + 1 < len(places):
+                    self.cell.move_l(a, s.travel_speed_m_s, s.travel_accel_m_s2)
+                    last = a
             self.cell.move_l(last @ clearance(Xe), s.travel_speed_m_s, s.travel_accel_m_s2)
             visited.append(p)
             for w in tilt_sweeps[len(centres) - n_fov_sweeps :]:
@@ -1812,38 +1920,52 @@ class SensorCalibration:
 
     def _manual_sweep(
         self, stage: SweepStage, group: int, label: str, instruction: str
-    ) -> RecordedSweep | None:
-        """Record one operator-driven sweep; None when the operator ends the stage. A recording
-        without the ball, with gaps (profiles not paired) or over less than the ball's radius is
-        rejected and asked for again."""
+    ) -> list[RecordedSweep] | None:
+        """Record one operator-driven sweep; None when the operator ends the stage. A sweep
+        across the ball and back becomes a forward/backward pair. A recording without the ball,
+        with gaps (profiles not paired), over less than the ball's radius or with its orientation
+        changing is rejected and asked for again."""
         R = self.s.ball_radius_m
         while True:
             answer = self._ask(
                 f"{label}: {instruction} Press Enter to start recording ('done' ends this stage, "
                 "'quit' aborts)."
             )
-            if answer in ("d", "done"):
+            if answer in ("d", "done", "s", "skip"):
                 return None
             data, _ = self.cell.record_while(
                 lambda: self._ask(
-                    "Recording: move the sensor along its X axis across the ball at constant "
-                    "orientation, then press Enter."
+                    "Recording: move the sensor along its X axis across the ball and back, at "
+                    "constant orientation (there and back cancels a latency error), then press "
+                    "Enter."
                 )
             )
-            try:
-                rs = self._reduce(data, stage, group, self._next_location(), 0, label)
-            except CalibrationFailed as exc:
-                self._say(stage, f"rejected: {str(exc).removeprefix(label + ': ')}; repeat it")
+            legs = split_round_trip(data)
+            loc = self._next_location()
+            out: list[RecordedSweep] = []
+            why = ""
+            for leg, direction in zip(legs, (1, -1) if len(legs) == 2 else (0,), strict=True):
+                name = label if direction == 0 else f"{label} {'fwd' if direction > 0 else 'bwd'}"
+                try:
+                    rs = self._reduce(leg, stage, group, loc, direction, name)
+                except CalibrationFailed as exc:
+                    why = str(exc).removeprefix(name + ": ")
+                    break
+                span, gap = ball_coverage(rs)
+                if span < R or gap > _MAX_GAP_R * R:
+                    why = (
+                        f"the ball was seen over {span * 1e3:.1f} mm of travel with a "
+                        f"{gap * 1e3:.1f} mm gap; sweep across the whole ball"
+                    )
+                    break
+                if self._constant_orientation(rs) > _ORIENTATION_TOL_RAD:
+                    why = "the orientation changed during the sweep"
+                    break
+                out.append(rs)
+            if why:
+                self._say(stage, f"rejected: {why}; repeat it")
                 continue
-            span, gap = ball_coverage(rs)
-            if span < R or gap > _MAX_GAP_R * R:
-                self._say(
-                    stage,
-                    f"rejected: the ball was seen over {span * 1e3:.1f} mm of travel with a "
-                    f"{gap * 1e3:.1f} mm gap; sweep across the whole ball and repeat it",
-                )
-                continue
-            return rs
+            return out
 
     def _constant_orientation(self, rs: RecordedSweep) -> float:
         R = rs.sweep.flange2base[:, :3, :3]
@@ -1867,29 +1989,26 @@ class SensorCalibration:
             g = targets[k]
             label = f"fov {k + 1}/{len(targets)}"
             self._say("fov", label, k + 1, len(targets))
-            rs = self._manual_sweep(
+            got = self._manual_sweep(
                 "fov",
                 0,
                 label,
                 f"place the ball at about y {g[1] * 1e3:+.0f} mm, z {g[2] * 1e3:.0f} mm in the "
                 f"laser plane, then move {h * 1e3:.0f} mm back along the sensor X axis.",
             )
-            if rs is None:
+            if got is None:
                 if k >= 3:
                     break
                 self._say("fov", "at least 3 field-of-view sweeps are needed")
                 continue
-            if self._constant_orientation(rs) > _ORIENTATION_TOL_RAD:
-                self._say("fov", "rejected: the orientation changed during the sweep; repeat it")
-                continue
-            F = rs.sweep.flange2base[0]
+            F = got[0].sweep.flange2base[0]
             if ref is not None and _rotation_between(F, ref) > _ORIENTATION_TOL_RAD:
                 self._say(
                     "fov", "rejected: the orientation differs from the first sweep's; repeat it"
                 )
                 continue
             ref = F if ref is None else ref
-            sweeps.append(dataclasses.replace(rs, label=f"fov {k + 1}"))
+            sweeps += [_relabel(w, f"fov {k + 1}") for w in got]
             k += 1
         assert ref is not None
         tilts: list[RecordedSweep] = []
@@ -1898,7 +2017,7 @@ class SensorCalibration:
         while j < s.n_orientations:
             label = f"orientation {j + 1}/{s.n_orientations}"
             self._say("orient", label, j + 1, s.n_orientations)
-            rs = self._manual_sweep(
+            got = self._manual_sweep(
                 "tilt",
                 j + 1,
                 label,
@@ -1906,33 +2025,28 @@ class SensorCalibration:
                 "orientations (spread the tilts around the ball), keep the ball in view and "
                 f"move {h * 1e3:.0f} mm back along the sensor X axis.",
             )
-            if rs is None:
+            if got is None:
                 if j >= 2:
                     break
                 self._say("orient", "at least 2 tilted orientations are needed")
                 continue
-            if self._constant_orientation(rs) > _ORIENTATION_TOL_RAD:
-                self._say("orient", "rejected: the orientation changed during the sweep; repeat")
-                continue
-            tilt = math.degrees(_rotation_between(rs.sweep.flange2base[0], ref))
-            tilts.append(dataclasses.replace(rs, label=f"orientation {j + 1}"))
+            tilt = math.degrees(_rotation_between(got[0].sweep.flange2base[0], ref))
+            tilts += [_relabel(w, f"orientation {j + 1}") for w in got]
             plans.append(OrientationPlan(f"orientation {j + 1}", float("nan"), tilt, 0.0))
             j += 1
         return [*sweeps, *tilts], plans, ref
 
     def _check_manual(self, joint: handeye.HandEyeResult) -> list[RecordedSweep]:
         del joint
-        answer = self._ask(
-            "Check scan: choose an orientation not used so far, put the ball in view and move "
-            f"{self.s.sweep_half_m * 1e3:.0f} mm back along the sensor X axis. Press Enter to "
-            "start recording ('skip' skips the check)."
+        got = self._manual_sweep(
+            "check",
+            -1,
+            "check scan",
+            "choose an orientation not used so far, put the ball in view and move "
+            f"{self.s.sweep_half_m * 1e3:.0f} mm back along the sensor X axis ('done' skips the "
+            "check).",
         )
-        if answer in ("s", "skip", "d", "done"):
-            return []
-        data, _ = self.cell.record_while(
-            lambda: self._ask("Recording: sweep across the ball, then press Enter.")
-        )
-        return [self._reduce(data, "check", -1, self._next_location(), 0, "check scan")]
+        return [] if got is None else got
 
 
 # --------------------------------------------------------------------------------------------
@@ -1978,7 +2092,8 @@ def calibration_of(
         "n_sweeps": float(len(result.sweeps)),
         "n_points": float(j.n_points),
         "min_z_angle_deg": float(result.min_z_angle_deg),
-        "robot_sigma_m": float(result.settings.robot_sigma_m),
+        "robot_sigma_m": float(result.robot_sigma_m or result.settings.robot_sigma_m),
+        "observed_robot_sigma_m": float(result.observed_robot_sigma_m),
         "two_step_rms_m": float(t.rms),
         "two_step_translation_diff_m": float(
             np.linalg.norm(t.sensor2flange[:3, 3] - j.sensor2flange[:3, 3])
@@ -2125,7 +2240,9 @@ def build_report(
         _param_rows(result),
         "Translation of the sensor origin in the flange frame; rotation uncertainty about the "
         "sensor axes. 1 sigma from the covariance (joint: sensor noise and the robot's "
-        f"repeatability, {s.robot_sigma_m * 1e6:.1f} um per axis).",
+        f"repeatability, {(result.robot_sigma_m or s.robot_sigma_m) * 1e6:.1f} um per axis: the "
+        f"larger of the data sheet's {s.robot_sigma_m * 1e6:.1f} um and the "
+        f"{result.observed_robot_sigma_m * 1e6:.1f} um the places' scatter shows, per pass).",
     )
     rep.section("Validation")
     if result.loo is not None:

@@ -192,6 +192,14 @@ def sensor(
     tilt_deg: float = typer.Option(
         52.0, "--tilt-deg", min=45.0, max=80.0, help="Tilt of the orientations (>= 45 deg)."
     ),
+    lateral_places: int = typer.Option(
+        2,
+        "--lateral-places",
+        min=1,
+        max=2,
+        help="Ball places along the laser line per tilted "
+        "orientation (2: both ends; the rotation about the sensor Z axis needs the lever).",
+    ),
     one_way: bool = typer.Option(
         False, "--one-way", help="Sweep each place once (faster; a latency error then biases)."
     ),
@@ -228,6 +236,7 @@ def sensor(
             n_orientations=orientations,
             tilt_deg=tilt_deg,
             bidirectional=not one_way,
+            lateral_places=lateral_places,
             check_scan=not no_check,
             leave_one_out=not no_loo,
         )

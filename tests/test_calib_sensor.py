@@ -112,6 +112,15 @@ def test_iso9283_repeatability_as_a_per_axis_sigma() -> None:
     assert sigma == pytest.approx(8.3e-6, abs=0.1e-6)
 
 
+def test_observed_robot_sigma_is_robust() -> None:
+    rng = np.random.default_rng(2)
+    offsets = {k: rng.normal(0.0, 8e-6, 3) for k in range(400)}
+    assert cs.observed_robot_sigma(offsets) == pytest.approx(8e-6, rel=0.1)
+    offsets[999] = np.array([1e-3, 0.0, 0.0])  # one slip does not move it
+    assert cs.observed_robot_sigma(offsets) == pytest.approx(8e-6, rel=0.1)
+    assert cs.observed_robot_sigma({0: np.zeros(3)}) == 0.0  # too few places to say
+
+
 # --------------------------------------------------------------------------------------------
 # Solution, timing compensation and validation on synthetic sweeps
 
@@ -456,6 +465,7 @@ def test_automatic_calibration_on_the_simulated_cell(tmp_path: Path, sim_cell: A
     res = _cli([
         "calibrate", "sensor", "--config", str(path), "--yes", "--out", str(out),
         "--report", str(report), "--speed-mm-s", "50", "--grid", "2", "--orientations", "4",
+        "--lateral-places", "1",
         "--nominal", "p[0.062, 0.008, 0.197, 0, 0, 0]", "--no-loo",
     ])  # fmt: skip
     assert res.exit_code == 0, res.output
@@ -506,9 +516,12 @@ def test_manual_mode_records_while_the_operator_moves(tmp_path: Path, sim_cell: 
     def prompt(message: str) -> str:
         asked.append(message)
         if message.startswith("Recording"):
-            pendant.move_l(pose(places[state["k"]] @ se3.make(None, (h, 0, 0))), 0.05, 0.5)
+            # Across the ball and back: the procedure splits it into a forward/backward pair.
+            S = places[state["k"]]
+            pendant.move_l(pose(S @ se3.make(None, (h, 0, 0))), 0.05, 0.5)
+            pendant.move_l(pose(S @ se3.make(None, (-h, 0, 0))), 0.05, 0.5)
             return ""
-        if message.startswith("Check scan"):
+        if message.startswith("check scan"):
             return "skip"
         # Jog to the place asked for: back off along the tool Z, joint move, approach. The
         # prompts number the sweeps; a rejected one (a gap in the pairing on a busy host) is
@@ -537,9 +550,13 @@ def test_manual_mode_records_while_the_operator_moves(tmp_path: Path, sim_cell: 
         )
     finally:
         pendant.close()
-    assert state["k"] == 6  # 4 field-of-view sweeps and 3 orientations
+    assert state["k"] == 6  # 4 field-of-view places and 3 orientations
     assert sum(m.startswith("Recording") for m in asked) >= 7
-    assert result.manual and len(result.sweeps) == 7 and result.check is None
+    assert result.manual and result.check is None
+    # Each round trip became a forward/backward pair; at most one place left out as inconsistent.
+    assert {w.direction for w in result.sweeps} == {1, -1}
+    assert len({w.location for w in result.sweeps}) >= 6
+    assert result.latency is not None and result.latency.n_pairs >= 6
     assert np.linalg.norm(result.sensor2flange[:3, 3] - X[:3, 3]) < 0.3e-3
     assert _rot_err_deg(result.sensor2flange, X) < 0.2
     assert read_calibration(tmp_path / "s2f.json").notes.startswith("manual mode")
