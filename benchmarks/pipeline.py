@@ -657,6 +657,7 @@ def measure_pipeline(
         "latency_p99_ms": float(np.percentile(lat, 99)) if lat.size else float("nan"),
         "latency_max_ms": float(lat.max()) if lat.size else float("nan"),
         "oldest_p99_ms": float(np.percentile(oldest, 99)) if oldest.size else float("nan"),
+        "daemon_latency_ms": d_b.get("latency_ms", {}),
         "utc_offset_change_us": (offset1 - offset0) / 1e3,
         "daemon_cpu_pct": 100.0 * daemon_s / active,
         "thread_cpu_pct": dict(sorted(by_thread.items(), key=lambda kv: -kv[1])),
@@ -1001,6 +1002,11 @@ def _run(
                 r["latency_p99_ms"] <= P99_TARGET_MS,
             ),
             Figure(f"{k} latency max", r["latency_max_ms"], "ms", "-", None),
+            *(
+                Figure(f"{k}   daemon stage {st} {q}", v[q], "ms", "-", None)
+                for st, v in r["daemon_latency_ms"].items()
+                for q in ("p50", "p99")
+            ),
             Figure(f"{k} daemon CPU", r["daemon_cpu_pct"], "% core", "-", None),
             Figure(f"{k} daemon CPU per profile", r["cpu_us_per_profile"], "us", "-", None),
             Figure(f"{k} daemon waiting for a CPU", r["runqueue_wait_ms_s"], "ms/s", "-", None),

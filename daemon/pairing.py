@@ -159,8 +159,9 @@ class PairerConfig:
 class PairedBatch:
     """Profiles paired with their robot state, ready for vectorised alignment.
 
-    Per profile ``(P,)``: ``sensor_id``, ``frame_counter``, ``exposure_ns`` (host monotonic),
-    ``clock_uncertainty_ns``, ``flange2base (P, 4, 4)``, ``table_angle`` (rad) or None.
+    Per profile ``(P,)``: ``sensor_id``, ``frame_counter``, ``exposure_ns`` and ``arrival_ns``
+    (host monotonic: the estimated exposure and the driver's receipt), ``clock_uncertainty_ns``,
+    ``flange2base (P, 4, 4)``, ``table_angle`` (rad) or None.
     Per point ``(N,)``: ``y``, ``z`` (m, sensor frame), ``valid``, ``intensity`` (only when every
     profile has one), ``profile_index`` into the profiles; profile ``k`` owns points
     ``offsets[k]:offsets[k + 1]``.
@@ -178,6 +179,7 @@ class PairedBatch:
     intensity: NDArray[np.uint8] | None
     profile_index: NDArray[np.uint32]
     offsets: IntArray
+    arrival_ns: IntArray | None = None
 
     @property
     def n_profiles(self) -> int:
@@ -377,7 +379,7 @@ class Pairer:
             for k in range(0, ready.shape[0], step):
                 sel = ready[k : k + step]
                 batches.append(
-                    self._batch(sel, exposure, unc, F, None if angle is None else angle[sel])
+                    self._batch(sel, exposure, unc, F, None if angle is None else angle[sel], host)
                 )
             self.paired += int(ready.shape[0])
             self.batches += len(batches)
@@ -483,6 +485,7 @@ class Pairer:
         unc: FloatArray,
         F: FloatArray,
         angle: FloatArray | None,
+        host: IntArray,
     ) -> PairedBatch:
         profs = [self._p_prof[i] for i in sel.tolist()]
         n = np.fromiter((p.y.shape[0] for p in profs), np.int64, len(profs))
@@ -504,6 +507,7 @@ class Pairer:
             intensity=intensity,
             profile_index=np.repeat(np.arange(len(profs), dtype=np.uint32), n),
             offsets=offsets,
+            arrival_ns=host[sel],
         )
 
     def _keep(self, idx: IntArray) -> None:

@@ -33,7 +33,7 @@ from wristscan.drivers.records import Profile, RobotState, TableState
 
 from .pairing import PairedBatch, Pairer
 
-__all__ = ["AlignmentSetup", "Pipeline", "PipelineSettings"]
+__all__ = ["AlignmentSetup", "LatencyWindow", "Pipeline", "PipelineSettings"]
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +65,55 @@ class PipelineSettings:
     stamp each record with the host time when they get the GIL back after the receive call;
     with Python's default 5 ms a busy worker delays those stamps by up to 5 ms, which the
     sensor clock fit sees as transport jitter (its jump tolerance is 2 ms)."""
+
+
+class LatencyWindow:
+    """The latest ``size`` per-profile latencies of each stage (ns), for percentiles in ``stats``.
+
+    Stages: ``transport`` (estimated exposure to the driver's receipt: sensor latency plus the
+    link), ``wait`` (receipt to the worker's tick that paired it: batching and waiting for the
+    robot state after the exposure), ``process`` (that tick to the publish call returning:
+    pairing, alignment, encoding, zenoh put) and ``total`` (exposure to published).
+    """
+
+    STAGES = ("transport", "wait", "process", "total")
+
+    def __init__(self, size: int = 20000) -> None:
+        self.size = size
+        self._buf = np.zeros((len(self.STAGES), size), dtype=np.int64)
+        self._n = 0
+        self._lock = threading.Lock()
+
+    def add(self, exposure_ns: NDArray[np.int64], arrival_ns: NDArray[np.int64], tick_ns: int,
+            done_ns: int) -> None:  # fmt: skip
+        k = min(int(exposure_ns.shape[0]), self.size)
+        if k == 0:
+            return
+        e, a = exposure_ns[-k:], arrival_ns[-k:]
+        rows = np.stack([a - e, tick_ns - a, np.full(k, done_ns - tick_ns), done_ns - e])
+        with self._lock:
+            start = self._n % self.size
+            first = min(k, self.size - start)
+            self._buf[:, start : start + first] = rows[:, :first]
+            self._buf[:, : k - first] = rows[:, first:]
+            self._n += k
+
+    def summary(self) -> dict[str, dict[str, float]]:
+        """p50, p99 and max of each stage in ms over the window (empty before any batch)."""
+        with self._lock:
+            data = self._buf[:, : min(self._n, self.size)].astype(np.float64) * 1e-6
+        if data.shape[1] == 0:
+            return {}
+        p50, p99 = np.percentile(data, [50.0, 99.0], axis=1)
+        mx = data.max(axis=1)
+        return {
+            st: {
+                "p50": round(float(p50[i]), 3),
+                "p99": round(float(p99[i]), 3),
+                "max": round(float(mx[i]), 3),
+            }
+            for i, st in enumerate(self.STAGES)
+        }
 
 
 def _name_os_thread(name: str) -> None:
@@ -194,7 +243,8 @@ class Pipeline:
         self._worker = threading.Thread(target=self._work, name="pipeline-worker", daemon=True)
         self._started = False
         self._saved_switch_interval: float | None = None
-        self.latency_ns: list[int] = []
+        self.latency = LatencyWindow()
+        self._tick_ns = 0
 
     # --- counters and health ----------------------------------------------------------------
     def _drop_profile(self) -> None:
@@ -248,6 +298,7 @@ class Pipeline:
             "robot": self.robot.health().counters.as_dict(),
             "table": None if self.table is None else self.table.health().counters.as_dict(),
             "pairing": p,
+            "latency_ms": self.latency.summary(),
         }
 
     def status(self) -> dict[str, Any]:
@@ -349,10 +400,10 @@ class Pipeline:
         t_first = int(batch.exposure_ns.min()) + self._utc_offset_ns
         t_last = int(batch.exposure_ns.max()) + self._utc_offset_ns
         self._publish(xyz, t_first, t_last, batch.n_profiles, frame, intensity, pidx)
-        now = time.monotonic_ns()
-        self.latency_ns.append(now - int(batch.exposure_ns.min()))
-        if len(self.latency_ns) > 10000:
-            del self.latency_ns[:5000]
+        if batch.arrival_ns is not None:
+            self.latency.add(
+                batch.exposure_ns, batch.arrival_ns, self._tick_ns, time.monotonic_ns()
+            )
         self.published_batches += 1
         self.published_profiles += batch.n_profiles
         self.published_points += int(xyz.shape[0])
@@ -369,6 +420,7 @@ class Pipeline:
                 stopping = self._stop.wait(max(0.0, next_tick - time.monotonic()))
                 next_tick = max(next_tick + period, time.monotonic())
                 with self._tick_lock:
+                    self._tick_ns = time.monotonic_ns()
                     self._drain()
                     batches = self.pairer.poll()
                     if stopping:

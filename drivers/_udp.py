@@ -1,10 +1,19 @@
 """Datagram reception shared by the UDP sensor drivers (LPF1-UDP, RF627).
 
 One socket bound to the configured port with a large receive buffer; datagrams are received with
-``recvfrom_into`` into one preallocated buffer and handed to the driver's ``_on_datagram`` as a
-memoryview (valid only during the call: decoders copy what they keep). UDP has no link to lose:
-the state stays OPEN and ``health().detail["stale"]`` says when nothing arrived for
-``stale_after_s``.
+``recvmsg_into`` into one preallocated buffer and handed to the driver's ``_on_datagram`` as a
+memoryview (valid only during the call: decoders copy what they keep).
+
+Receipt stamps come from the kernel (Linux ``SO_TIMESTAMPNS``: the time the datagram reached the
+socket) rather than from the reading thread: a reader that waits for the CPU or for Python's GIL
+would otherwise stamp late, and the sensor clock fit would see that delay as link jitter. The
+kernel stamps CLOCK_REALTIME; it is turned into the host monotonic clock with the offset between
+the two read at that moment (both follow NTP's slewing; a step between the stamp and the read is
+the only error, and the result is never later than the read). Without the option (other
+systems) the thread stamps on return, as before; ``health().detail["kernel_stamps"]`` says which.
+
+UDP has no link to lose: the state stays OPEN and ``health().detail["stale"]`` says when nothing
+arrived for ``stale_after_s``.
 """
 
 from __future__ import annotations
@@ -12,6 +21,8 @@ from __future__ import annotations
 import logging
 import select
 import socket
+import struct
+import sys
 import time
 from abc import abstractmethod
 from typing import Any
@@ -26,6 +37,13 @@ log = logging.getLogger(__name__)
 
 MAX_DATAGRAM = 65536
 
+_SO_TIMESTAMPNS = getattr(
+    socket, "SO_TIMESTAMPNS", 35 if sys.platform.startswith("linux") else None
+)
+"""Linux asm-generic value; Python 3.11's socket module does not name it."""
+_TIMESPEC = struct.Struct("@qq")
+_ANC_SPACE = socket.CMSG_SPACE(_TIMESPEC.size)
+
 
 def _resolve_ipv4(host: str) -> str:
     try:
@@ -33,6 +51,17 @@ def _resolve_ipv4(host: str) -> str:
     except OSError as exc:
         raise DriverInitError(f"cannot resolve {host!r}: {exc}") from exc
     return str(infos[0][4][0])
+
+
+def _kernel_stamp(ancillary: list[tuple[int, int, bytes]], now_mono_ns: int) -> int:
+    """The kernel's receipt time of a datagram on the monotonic clock (``now_mono_ns`` when
+    the message carries none)."""
+    for level, kind, data in ancillary:
+        if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(data) >= _TIMESPEC.size:
+            sec, nsec = _TIMESPEC.unpack_from(data)
+            real_minus_mono = time.time_ns() - now_mono_ns
+            return min(now_mono_ns, sec * 1_000_000_000 + nsec - real_minus_mono)
+    return now_mono_ns
 
 
 class UdpProfileSensor(SensorCore):
@@ -74,6 +103,8 @@ class UdpProfileSensor(SensorCore):
         self._poll: select.poll | None = None
         self._source_ip: str | None = None
         self._last_rx_ns: int | None = None
+        self.kernel_stamps = False
+        """Receipt stamps come from the kernel (``SO_TIMESTAMPNS``), not the reading thread."""
 
     # --- life cycle -------------------------------------------------------------------------
     def _open(self) -> None:
@@ -83,6 +114,7 @@ class UdpProfileSensor(SensorCore):
             self.rcvbuf_bytes = self._grow_buffer(sock)
             sock.bind((self.bind_host, self.port))
             sock.setblocking(False)
+            self.kernel_stamps = self._enable_kernel_stamps(sock)
         except OSError as exc:
             sock.close()
             raise DriverInitError(
@@ -103,6 +135,16 @@ class UdpProfileSensor(SensorCore):
             port,
             self.rcvbuf_bytes,
         )
+
+    @staticmethod
+    def _enable_kernel_stamps(sock: socket.socket) -> bool:
+        if _SO_TIMESTAMPNS is None:
+            return False
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+        except OSError:
+            return False
+        return True
 
     def _grow_buffer(self, sock: socket.socket) -> int:
         want = self.recv_buffer_bytes
@@ -141,10 +183,14 @@ class UdpProfileSensor(SensorCore):
             return None
         wait = self.max_wait_s if timeout is None else min(timeout, self.max_wait_s)
         deadline = time.monotonic() + wait
-        buf, view = self._buf, self._view
+        buf, view, kernel = self._buf, self._view, self.kernel_stamps
+        bufs = [buf]
         while True:
             try:
-                n, addr = sock.recvfrom_into(buf)
+                if kernel:
+                    n, anc, _flags, addr = sock.recvmsg_into(bufs, _ANC_SPACE)
+                else:
+                    n, addr = sock.recvfrom_into(buf)
             except BlockingIOError:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
@@ -162,6 +208,8 @@ class UdpProfileSensor(SensorCore):
                 self._last_error = str(exc)
                 return None
             host_ns = time.monotonic_ns()
+            if kernel:
+                host_ns = _kernel_stamp(anc, host_ns)
             self._last_rx_ns = host_ns
             self.counters.bytes += n
             if self._source_ip is not None and addr[0] != self._source_ip:
@@ -189,6 +237,7 @@ class UdpProfileSensor(SensorCore):
             "local_address": self.local_address,
             "rcvbuf_bytes": self.rcvbuf_bytes,
             "stale": self.stale,
+            "kernel_stamps": self.kernel_stamps,
             "last_rx_age_s": None if last is None else (time.monotonic_ns() - last) * 1e-9,
         }
 

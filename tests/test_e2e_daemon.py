@@ -155,6 +155,10 @@ def test_daemon_end_to_end(tmp_path: Path) -> None:
             assert stats["received"] == (
                 stats["published"] + sum(stats["dropped"].values()) + stats["pending"]
             )
+            # Where the latency goes, per stage; the stages add up to the total.
+            lat = stats["latency_ms"]
+            assert set(lat) == {"transport", "wait", "process", "total"}
+            assert 0.0 <= lat["transport"]["p50"] <= lat["total"]["p50"] <= lat["total"]["p99"]
             assert client.query("calibration")["method"] == "simulation truth"
 
             # SIGHUP with a corrupt calibration: refused, the old one stays in force.

@@ -424,3 +424,22 @@ def test_receiver_short_of_cpu_loses_no_profile_to_the_clocks() -> None:
 @pytest.mark.parametrize("reason", DROP_REASONS)
 def test_drop_reasons_are_counted_from_zero(reason: str) -> None:
     assert Pairer().dropped[reason] == 0
+
+
+def test_latency_window_keeps_the_latest_profiles_per_stage() -> None:
+    from wristscan.daemon.pipeline import LatencyWindow
+
+    w = LatencyWindow(size=5)
+    assert w.summary() == {}
+    ms = 1_000_000
+    # Three profiles exposed at 0, 1, 2 ms, received 2 ms later, ticked at 10, done at 12 ms.
+    e = np.array([0, 1, 2]) * ms
+    w.add(e, e + 2 * ms, 10 * ms, 12 * ms)
+    s = w.summary()
+    assert s["transport"]["max"] == 2.0 and s["process"]["p50"] == 2.0
+    assert s["wait"]["max"] == 8.0 and s["total"]["max"] == 12.0
+    # Four more overwrite the oldest two: only the latest five count.
+    e = np.array([100, 101, 102, 103]) * ms
+    w.add(e, e + 5 * ms, 110 * ms, 111 * ms)
+    s = w.summary()
+    assert s["transport"]["p50"] == 5.0 and s["total"]["max"] == 11.0

@@ -429,6 +429,27 @@ def test_lpf1_udp_reassembles_fragments_and_filters_ids_and_sources(
         assert drv.health().detail["foreign_source"] == 2
 
 
+def test_udp_receipt_stamps_come_from_the_kernel_not_the_late_reader() -> None:
+    """A reader that gets to the socket 80 ms after the datagram arrived still stamps the
+    arrival (the sensor clock fit would otherwise see the delay as link jitter)."""
+    drv = Lpf1UdpSensor(bind_host="127.0.0.1", port=0)
+    with drv, socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
+        assert drv.local_address is not None
+        assert drv.health().detail["kernel_stamps"] is True
+        sent_ns = []
+        for m in _lpf1_messages(3):
+            sent_ns.append(time.monotonic_ns())
+            tx.sendto(m, drv.local_address)
+        time.sleep(0.08)
+        read_ns = time.monotonic_ns()
+        got = _drain(drv)
+    assert len(got) == 3
+    stamps = np.array([p.host_time_ns for p in got])
+    # Each stamp lies between its send and the next send (loopback delivers within the call).
+    assert np.all(stamps >= np.array(sent_ns)) and np.all(stamps < read_ns - 70_000_000)
+    assert np.all(np.diff(stamps) >= 0)
+
+
 def test_lpf1_tcp_resynchronises_after_garbage_and_a_hello_announces_a_reboot() -> None:
     with socket.socket() as server:
         server.bind(("127.0.0.1", 0))

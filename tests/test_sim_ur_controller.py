@@ -22,7 +22,7 @@ import rtde_control
 import rtde_receive
 
 from wristscan.calib import kinematics, se3
-from wristscan.drivers.sim import rtde_wire
+from wristscan.drivers import rtde_wire
 from wristscan.drivers.sim.truth import TruthRing
 from wristscan.drivers.sim.ur_controller import ControllerConfig, SimulatedController
 from wristscan.drivers.sim.ur_motion import (

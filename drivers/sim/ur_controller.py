@@ -55,10 +55,10 @@ stop`` clears it after ``pstop_unlock_delay_s``.
 
 Faults on request (from the parent, :class:`SimulatedController`): drop every RTDE connection
 (clients see end-of-file), stall the RTDE output for a while (ur_rtde clients give up after 2.5 s
-without data), protective stop. Note: after a dropped connection ur_rtde 1.6.5's
-``RTDEControlInterface`` reconnects over and over (its receive thread never clears its reconnect
-flag), re-uploading the script each time; ``RTDEReceiveInterface`` simply reports
-``isConnected() == False`` until ``reconnect()``.
+without data), protective stop, an RTDE text message ('M') to the streaming clients. Note:
+after a dropped connection ur_rtde 1.6.5's ``RTDEControlInterface`` reconnects over and over (its
+receive thread never clears its reconnect flag), re-uploading the script each time;
+``RTDEReceiveInterface`` simply reports ``isConnected() == False`` until ``reconnect()``.
 
 Minimal URScript programs
 ------------------------
@@ -103,7 +103,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from wristscan.calib import kinematics, se3
 
-from . import dashboard, rtde_wire
+from .. import rtde_wire
+from . import dashboard
 from .truth import TruthRing
 from .ur_motion import (
     CartesianPath,
@@ -435,6 +436,8 @@ class _Controller:
         self.rtde_conns: set[_RtdeProtocol] = set()
         self.other_transports: set[asyncio.BaseTransport] = set()
         self.stopping = asyncio.Event()
+        self.skipped_cycles = 0
+        """Cycles not published because the controller ran late (what a client can never get)."""
 
     # ------------------------------------------------------------------ clock and physics
 
@@ -452,6 +455,8 @@ class _Controller:
         self._check_watches()
         if publish:
             self._publish(k)
+        else:
+            self.skipped_cycles += 1
 
     def _advance(self, t_end_ns: int) -> None:
         times: list[int] = []
@@ -1125,6 +1130,14 @@ class _Controller:
 
     # ------------------------------------------------------------------ faults and queries
 
+    def send_text_message(self, text: str, source: str, level: int) -> int:
+        """An RTDE text message ('M') to every started client, between data packages."""
+        payload = rtde_wire.encode_text_message(text, source, level)
+        conns = [c for c in self.rtde_conns if c.started and c.transport is not None]
+        for c in conns:
+            c._reply(rtde_wire.TEXT_MESSAGE, payload)
+        return len(conns)
+
     def drop_connections(self) -> int:
         conns = list(self.rtde_conns)
         for c in conns:
@@ -1148,6 +1161,7 @@ class _Controller:
             "program": self.program_name,
             "program_kind": self.program_kind,
             "rtde_clients": len(self.rtde_conns),
+            "skipped_cycles": self.skipped_cycles,
             "speed_slider": self.speed_slider,
         }
 
@@ -1483,6 +1497,8 @@ def _control(ctrl: _Controller, msg: tuple[Any, ...]) -> tuple[str, Any]:
             return ("ok", None)
         if kind == "drop":
             return ("ok", ctrl.drop_connections())
+        if kind == "message":
+            return ("ok", ctrl.send_text_message(str(msg[1]), str(msg[2]), int(msg[3])))
         if kind == "stall":
             ctrl.stall_until_ns = time.monotonic_ns() + int(float(msg[1]) * 1e9)
             return ("ok", None)
@@ -1644,6 +1660,11 @@ class SimulatedController:
         """Close every RTDE client connection (clients see end-of-file); returns how many."""
         return int(self._request("drop"))
 
+    def send_text_message(self, text: str, source: str = "sim", level: int = 3) -> int:
+        """Send an RTDE text message ('M'; level 0 exception .. 3 info) to every streaming client,
+        as a controller does mid-stream; returns how many got it."""
+        return int(self._request("message", text, source, level))
+
     def stall_output(self, seconds: float) -> None:
         """Send no RTDE data packages for ``seconds`` (the controller keeps running)."""
         self._request("stall", seconds)
@@ -1659,7 +1680,8 @@ class SimulatedController:
     def state(self) -> dict[str, Any]:
         """Snapshot: ``timestamp``, ``q`` (reported), ``q_true``, ``tcp_pose`` (and
         ``tcp_pose_true`` from ``q_true``), ``tcp_offset`` (the active TCP), ``moving``,
-        ``runtime_state``, ``robot_mode``, ``safety_mode``, ``program``, ``rtde_clients`` ..."""
+        ``runtime_state``, ``robot_mode``, ``safety_mode``, ``program``, ``rtde_clients``,
+        ``skipped_cycles`` (cycles left unpublished because the controller process ran late) ..."""
         return dict(self._request("state"))
 
     def program_text(self) -> str:

@@ -1,4 +1,5 @@
-"""RTDE wire format for the simulated UR controller: packet framing and the variable type table.
+"""RTDE wire format, shared by the receive client (:mod:`.rtde_receive`) and the simulated
+controller (:mod:`.sim.ur_controller`): packet framing, the variable type table, recipes.
 
 Packet: ``uint16 size`` (including the 3-byte header), ``uint8 type``, payload; big-endian
 (PROTOCOLS.md, "UR RTDE"). The name -> type table lists every variable a UR controller knows, as
@@ -9,9 +10,12 @@ missing from it is answered with ``NOT_FOUND``. Registers 0-23 are the general-p
 
 from __future__ import annotations
 
+import functools
 import struct
 from collections.abc import Iterator, Sequence
 from typing import Any
+
+import numpy as np
 
 __all__ = [
     "DATA_PACKAGE",
@@ -25,11 +29,14 @@ __all__ = [
     "SETUP_OUTPUTS",
     "START",
     "TEXT_MESSAGE",
+    "TYPE_DTYPE",
     "TYPE_FORMAT",
     "VARIABLE_TYPES",
     "PacketReader",
     "Recipe",
     "encode",
+    "encode_text_message",
+    "parse_text_message",
     "split_names",
     "zero_value",
 ]
@@ -59,6 +66,20 @@ TYPE_FORMAT: dict[str, str] = {
     "VECTOR6UINT32": "6I",
 }
 """struct format of each RTDE type (big-endian prefix added by :class:`Recipe`)."""
+
+TYPE_DTYPE: dict[str, tuple[str, int]] = {
+    "BOOL": ("?", 1),
+    "UINT8": ("u1", 1),
+    "UINT32": ("u4", 1),
+    "UINT64": ("u8", 1),
+    "INT32": ("i4", 1),
+    "DOUBLE": ("f8", 1),
+    "VECTOR3D": ("f8", 3),
+    "VECTOR6D": ("f8", 6),
+    "VECTOR6INT32": ("i4", 6),
+    "VECTOR6UINT32": ("u4", 6),
+}
+"""NumPy scalar type (without byte order) and element count of each RTDE type."""
 
 _TYPE_LENGTH = {"VECTOR3D": 3, "VECTOR6D": 6, "VECTOR6INT32": 6, "VECTOR6UINT32": 6}
 
@@ -217,6 +238,30 @@ def encode(packet_type: int, payload: bytes = b"") -> bytes:
     return HEADER.pack(HEADER.size + len(payload), packet_type) + payload
 
 
+def encode_text_message(text: str, source: str = "", level: int = 3) -> bytes:
+    """Payload of a protocol-2 text message ('M'): ``uint8`` length, message, ``uint8`` length,
+    source, ``uint8`` level (0 exception, 1 error, 2 warning, 3 info)."""
+    t = text.encode("utf-8")[:255]
+    s = source.encode("utf-8")[:255]
+    return bytes((len(t),)) + t + bytes((len(s),)) + s + bytes((level & 0xFF,))
+
+
+def parse_text_message(payload: bytes) -> tuple[str, str, int]:
+    """``(text, source, level)`` of a protocol-2 text message; a malformed one yields its bytes
+    as text, level 3 (a message is informative: never worth dropping the link over)."""
+    try:
+        n = payload[0]
+        text = payload[1 : 1 + n]
+        m = payload[1 + n]
+        source = payload[2 + n : 2 + n + m]
+        level = payload[2 + n + m]
+        if len(text) != n or len(source) != m:
+            raise IndexError
+    except IndexError:
+        return payload.decode("utf-8", errors="replace"), "", 3
+    return text.decode("utf-8", errors="replace"), source.decode("utf-8", errors="replace"), level
+
+
 def split_names(text: bytes) -> list[str]:
     """Comma-separated names as ur_rtde sends them (with a trailing comma); empty items dropped."""
     return [n.strip() for n in text.decode("ascii", errors="replace").split(",") if n.strip()]
@@ -233,6 +278,22 @@ class Recipe:
         self.counts = [_TYPE_LENGTH.get(t, 1) for t in self.types]
         self.struct = struct.Struct(">" + "".join(TYPE_FORMAT[t] for t in self.types))
         self.field_structs = [struct.Struct(">" + TYPE_FORMAT[t]) for t in self.types]
+
+    @functools.cached_property
+    def dtype(self) -> np.dtype[np.void]:
+        """Packed structured dtype of the fields as sent (big-endian), ``struct.size`` bytes
+        (names must be unique)."""
+        return self.numpy_dtype(">")
+
+    def numpy_dtype(self, byte_order: str = "=") -> np.dtype[np.void]:
+        """Packed structured dtype of the fields (``">"`` as on the wire, ``"="`` native);
+        vector types are sub-arrays, e.g. ``actual_q`` has shape ``(6,)``."""
+        fields: list[tuple[str, str] | tuple[str, str, tuple[int]]] = []
+        for name, t in zip(self.names, self.types, strict=True):
+            scalar, n = TYPE_DTYPE[t]
+            code = scalar if scalar in ("?", "u1") else byte_order + scalar
+            fields.append((name, code, (n,)) if t in _TYPE_LENGTH else (name, code))
+        return np.dtype(fields)
 
     def pack(self, values: dict[str, Any], defaults: dict[str, Any]) -> bytes:
         """Payload of a data package: recipe id then the fields, read from ``values`` (falling
