@@ -176,7 +176,12 @@ class SensorSimConfig:
     max_lag_s: float = 1.0
     """Exposures more than this late (an overloaded host) are skipped, leaving counter gaps."""
     batch_s: float = 0.001
-    """Exposures are ray-cast together when they fall due within this window."""
+    """Exposures are ray-cast together when they fall due within this window (at most a
+    quarter of ``latency_s``, so that they are still sent on time)."""
+    precompute_s: float = 0.003
+    """Exposures are ray-cast up to this long before they happen, as soon as the truth rings
+    cover them (the controller and the table write them ahead), and sent at their send time:
+    a sensor process scheduled a little late still sends on time, as a real sensor does."""
     seed: int | None = None
     faults: FaultConfig = field(default_factory=FaultConfig)
 
@@ -187,6 +192,8 @@ class SensorSimConfig:
             raise ValueError("rate_hz must be in (0, 100000]")
         if self.n_points < 1:
             raise ValueError("n_points must be >= 1")
+        if self.precompute_s < 0:
+            raise ValueError("precompute_s must be >= 0")
         if self.latency_s < 0 or (self.stamp_delay_s is not None and self.stamp_delay_s < 0):
             raise ValueError("latency_s and stamp_delay_s must be >= 0")
         if self.is_scip and self.n_points > self.scip_ares:
@@ -1055,6 +1062,7 @@ class _Runtime:
         self.link.register(self.sel)
         self.period_ns = 1e9 / cfg.rate_hz / self.clock.rate
         self.latency_ns = round(cfg.latency_s * 1e9)
+        self.precompute_ns = round(cfg.precompute_s * 1e9)
         stamp = cfg.latency_s if cfg.stamp_delay_s is None else cfg.stamp_delay_s
         self.stamp_delay_ns = round(stamp * 1e9)
         self.t0_ns = time.monotonic_ns() + round(self.period_ns)
@@ -1136,9 +1144,9 @@ class _Runtime:
     def _t_exp(self, k: int) -> int:
         return self.t0_ns + int(k * self.period_ns)
 
-    def _truth_until(self, now_ns: int) -> int:
-        """Latest exposure time the truth rings cover (now, without rings)."""
-        limit = now_ns
+    def _truth_until(self, limit_ns: int) -> int:
+        """Latest exposure time the truth rings cover, at most ``limit_ns``."""
+        limit = limit_ns
         for ring in (self.robot_ring, self.table_ring):
             if ring is None:
                 continue
@@ -1150,11 +1158,14 @@ class _Runtime:
     def _produce(self, now_ns: int) -> bool:
         """Compute the exposures that are due (one chunk); True if more are due already."""
         t_next = self._t_exp(self.k_next)
-        if t_next > now_ns:
+        ahead_ns = now_ns + self.precompute_ns
+        if t_next > ahead_ns:
             return False
         k_now = int((now_ns - self.t0_ns) // self.period_ns) + 1  # exposures up to now
         if not self.proto.wants_exposures() or self.down_until_ns:
             # Nobody to send to: the device keeps exposing, nothing needs computing.
+            if k_now <= self.k_next:
+                return False
             self.stats["exposures"] += k_now - self.k_next
             self.stats["unsent"] += k_now - self.k_next
             self.k_next = k_now
@@ -1167,7 +1178,7 @@ class _Runtime:
             self.stats["overrun"] += k_new - self.k_next
             self.k_next = k_new
             t_next = self._t_exp(self.k_next)
-        ripe = self._truth_until(now_ns)
+        ripe = self._truth_until(ahead_ns)
         waited_out = now_ns - t_next > self.cfg.truth_wait_s * 1e9
         if ripe < t_next and not waited_out:
             return False
@@ -1280,7 +1291,9 @@ class _Runtime:
 
     def run(self) -> None:
         self.conn.send(("ready", self.link.endpoint()))
-        batch_ns = int(self.cfg.batch_s * 1e9)
+        # Gather exposures for one vectorised ray-cast for at most a quarter of the latency: the
+        # batch must still be computed and sent by its exposures' send time.
+        batch_ns = min(int(self.cfg.batch_s * 1e9), self.latency_ns // 4) - self.precompute_ns
         while self.running:
             now = time.monotonic_ns()
             if self.down_until_ns and now >= self.down_until_ns:

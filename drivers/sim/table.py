@@ -55,6 +55,10 @@ class TableSimConfig:
     accel_deg_s2: float = 180.0
     initial_angle_rad: float = 0.0
     truth_rate_hz: float = 1000.0
+    motion_lookahead_s: float = 0.004
+    """Commands take effect this long after they arrive and the truth ring is written this far
+    ahead, so that a simulated sensor finds the true angle of an exposure in the ring when it
+    exposes (as with the controller's ``motion_lookahead_s``)."""
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -135,6 +139,7 @@ def _serve(config: TableSimConfig, ring_name: str | None, conn: Connection) -> N
     )
     cpr = config.counts_per_rev
     ring = TruthRing.attach(ring_name) if ring_name else None
+    ahead_s = config.motion_lookahead_s
 
     def count_now(t: float) -> int:
         return round(motion.angle(t) / (2 * math.pi) * cpr) % (1 << 32)
@@ -164,10 +169,12 @@ def _serve(config: TableSimConfig, ring_name: str | None, conn: Connection) -> N
                     tgt = tgt - (1 << 32) if tgt >= 1 << 31 else tgt  # int32
                     speed = regs[REG["speed"]] * 0.1
                     motion.move_to(
-                        t, tgt / cpr * 2 * math.pi, math.radians(speed) if speed > 0 else None
+                        t + ahead_s,
+                        tgt / cpr * 2 * math.pi,
+                        math.radians(speed) if speed > 0 else None,
                     )
                 elif cmd == CMD_STOP:
-                    motion.stop(t)
+                    motion.stop(t + ahead_s)
                 set_values[REG["command"] - address] = 0  # type: ignore[call-overload]
         registers[REG["status"] - start_address] = (1 if motion.moving(t) else 0) | (
             0 if motion.moving(t) else 2
@@ -207,7 +214,7 @@ def _serve(config: TableSimConfig, ring_name: str | None, conn: Connection) -> N
                     if msg[0] == "angle":
                         conn.send(("angle", motion.angle(time.monotonic())))
                 if ring is not None:
-                    t_ns = time.monotonic_ns()
+                    t_ns = time.monotonic_ns() + round(ahead_s * 1e9)
                     ring.append(t_ns, [motion.angle(t_ns * 1e-9)])
                 await asyncio.sleep(period - (loop.time() % period))
         finally:

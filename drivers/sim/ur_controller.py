@@ -25,7 +25,11 @@ steps the current motion (:mod:`.ur_motion`) and appends the TRUE joint position
 the controller's own joint positions (its encoders); the true arm differs from them by the
 repeatability model :class:`~.ur_motion.RepeatabilityNoise` (``true_q = actual_q + offset``; zero
 offset with the default ``repeatability_m = 0``). ``actual_TCP_pose`` is ``FK(actual_q) @ tcp``
-as a UR pose. Velocities and accelerations are finite differences over the last tick.
+as a UR pose. Velocities and accelerations are finite differences over the last tick. The motion
+is computed ``motion_lookahead_s`` (4 ms) ahead of the cycle being reported, and the truth ring
+written that far ahead, so that a simulated sensor finds the true pose of an exposure in the ring
+when it exposes; commands therefore take effect that much later, as a controller's own planning
+delays them.
 
 Emulated ``rtde_control`` script (ur_rtde 1.6, ``scripts/rtde_control.script``)
 ------------------------------------------------------------------------------
@@ -93,6 +97,7 @@ import re
 import socket
 import struct
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
@@ -198,6 +203,11 @@ class ControllerConfig:
     program_stop_decel_m_s2: float = 2.0
     truth_rate_hz: float = 1000.0
     """Internal simulation rate and truth-ring sample rate (must divide into the cycle)."""
+    motion_lookahead_s: float = 0.004
+    """The arm's motion is computed (and written to the truth ring) this far ahead of the cycle
+    being reported; commands take effect after it. Simulated sensors then find the true pose of
+    each exposure in the ring when they expose instead of waiting up to a cycle for it, which
+    would delay every profile they send (a real sensor waits for nothing)."""
     payload_kg: float = 0.0
     primary_interface: bool = False
     """Also serve the primary interface on TCP 30001 (:mod:`.primary`: version message and
@@ -215,6 +225,8 @@ class ControllerConfig:
             raise ValueError(f"speed_slider must be in (0, 1], got {self.speed_slider}")
         if self.repeatability_m < 0:
             raise ValueError("repeatability_m must be >= 0")
+        if not 0.0 <= self.motion_lookahead_s <= 0.1:
+            raise ValueError("motion_lookahead_s must be in [0, 0.1]")
         socket.inet_aton(self.host)  # a dotted IPv4 address
         if self.period_ns % self.tick_ns != 0:
             raise ValueError(
@@ -237,6 +249,11 @@ class ControllerConfig:
     @property
     def tick_ns(self) -> int:
         return round(1e9 / self.truth_rate_hz)
+
+    @property
+    def lookahead_ns(self) -> int:
+        """``motion_lookahead_s`` rounded up to whole ticks."""
+        return math.ceil(self.motion_lookahead_s * 1e9 / self.tick_ns) * self.tick_ns
 
 
 _MOTION_DEFAULTS = {
@@ -379,6 +396,13 @@ class _Controller:
         self.qd = np.zeros(6)
         self.qdd = np.zeros(6)
         self.q_true = self.q.copy()
+        # The physics frontier, ``lookahead_ns`` ahead of the reported (present) state above;
+        # the ticks in between wait in _history as (t_ns, q, qd, qdd, q_true).
+        self.lookahead_ns = config.lookahead_ns
+        self._pq, self._pqd, self._pqdd = self.q.copy(), np.zeros(6), np.zeros(6)
+        self._history: deque[tuple[int, FloatArray, FloatArray, FloatArray, FloatArray]] = deque()
+        self._moved_until_ns = 0
+        """Frontier time from which the arm stands still (the first tick with zero velocity)."""
         self.noise = RepeatabilityNoise(
             self.model,
             self.tcp2flange,
@@ -444,12 +468,14 @@ class _Controller:
     def begin(self, start_ns: int) -> None:
         self.start_ns = start_ns
         self.t_tick_ns = start_ns
-        self._append_truth([start_ns], self.q[None])
+        self._history.clear()
+        self._append_truth([start_ns], self._pq[None], np.zeros((1, 6)), np.zeros((1, 6)))
 
     def run_cycle(self, k: int, publish: bool) -> None:
         self.cycle = k
         t_k = self.start_ns + k * self.period_ns
-        self._advance(t_k)
+        self._advance(t_k + self.lookahead_ns)
+        self._settle(t_k)
         self._check_watches()
         self._script_step()
         self._check_watches()
@@ -461,22 +487,45 @@ class _Controller:
     def _advance(self, t_end_ns: int) -> None:
         times: list[int] = []
         qs: list[FloatArray] = []
+        qds: list[FloatArray] = []
+        qdds: list[FloatArray] = []
         dt = self.tick_ns * 1e-9
         while self.t_tick_ns + self.tick_ns <= t_end_ns:
             self.t_tick_ns += self.tick_ns
             q = self._step_motion(dt * self.speed_slider)
-            qd = (q - self.q) / dt
-            self.qdd = (qd - self.qd) / dt
-            self.qd = qd
-            self.q = q
+            qd = (q - self._pq) / dt
+            self._pqdd = (qd - self._pqd) / dt
+            self._pqd = qd
+            self._pq = q
+            if qd.any():
+                self._moved_until_ns = self.t_tick_ns + self.tick_ns
             times.append(self.t_tick_ns)
             qs.append(q)
+            qds.append(self._pqd)
+            qdds.append(self._pqdd)
         if qs:
-            self._append_truth(times, np.array(qs))
+            self._append_truth(times, np.array(qs), np.array(qds), np.array(qdds))
 
-    def _append_truth(self, times: Sequence[int], qs: FloatArray) -> None:
+    def _caught_up(self) -> bool:
+        """The reported state shows the arm standing still since its last motion: completions
+        are signalled only then, as a real controller signals them when the arm has stopped."""
+        return self.start_ns + self.cycle * self.period_ns >= self._moved_until_ns
+
+    def _settle(self, t_ns: int) -> None:
+        """Make the last computed tick at or before ``t_ns`` the reported state."""
+        h = self._history
+        last = None
+        while h and h[0][0] <= t_ns:
+            last = h.popleft()
+        if last is not None:
+            _, self.q, self.qd, self.qdd, self.q_true = last
+
+    def _append_truth(
+        self, times: Sequence[int], qs: FloatArray, qds: FloatArray, qdds: FloatArray
+    ) -> None:
         q_true = qs + self.noise.joint_offsets(qs) if self.cfg.repeatability_m > 0 else qs
-        self.q_true = q_true[-1].copy()
+        for i, t in enumerate(times):
+            self._history.append((int(t), qs[i], qds[i], qdds[i], q_true[i]))
         if self.ring is not None:
             for t, row in zip(times, q_true, strict=True):
                 self.ring.append(int(t), row)
@@ -487,7 +536,7 @@ class _Controller:
             self._start_job(job)
         m = self.motion
         if m is None:
-            return self.q
+            return self._pq
         try:
             q = m.step(dtau)
         except MotionFault as e:
@@ -495,7 +544,7 @@ class _Controller:
             self.motion = None
             self._finish_job()
             self.enter_protective_stop(str(e))
-            return self.q
+            return self._pq
         if m.finished:
             self.motion = None
             self._finish_job()
@@ -503,7 +552,7 @@ class _Controller:
 
     def _start_job(self, job: _Job) -> None:
         try:
-            motion = job.plan(self.q.copy())
+            motion = job.plan(self._pq.copy())
         except (MotionFault, kinematics.Unreachable, ValueError) as e:
             job.error = str(e)
             job.finished = True
@@ -527,7 +576,7 @@ class _Controller:
         for w in self.watches:
             if not w.active:
                 continue
-            if w.done():
+            if w.done() and self._caught_up():
                 w.active = False
                 w.action()
             else:
@@ -774,7 +823,7 @@ class _Controller:
         if self.program_kind != "rtde_control" or self.runtime_state != RUNTIME_PLAYING:
             return
         if self.busy is not None:
-            if not self.busy():
+            if not (self.busy() and self._caught_up()):
                 return
             self.busy = None
             self._write_int(0, 2)
@@ -825,7 +874,8 @@ class _Controller:
             except (MotionFault, kinematics.Unreachable, ValueError) as e:
                 self._script_error(f"line {op.line}: {op.kind}: {e}")
             return
-        self._end_program("finished")
+        if self._caught_up():  # the program ends when the reported arm has stopped
+            self._end_program("finished")
 
     def _script_movej(self, op: ScriptOp) -> None:
         a, v = op.a, op.v
@@ -1154,7 +1204,7 @@ class _Controller:
             "tcp_pose": se3.matrix_to_pose(self._tcp_pose_matrix(self.q)).tolist(),
             "tcp_pose_true": se3.matrix_to_pose(self._tcp_pose_matrix(self.q_true)).tolist(),
             "tcp_offset": list(self._tcp_offset_pose),
-            "moving": self._moving(),
+            "moving": self._moving() or not self._caught_up(),
             "runtime_state": self.runtime_state,
             "robot_mode": self.robot_mode,
             "safety_mode": self.safety_mode,
@@ -1170,6 +1220,8 @@ class _Controller:
             return False
         self.q = np.asarray(q, dtype=np.float64).copy()
         self.qd = np.zeros(6)
+        self._pq, self._pqd, self._pqdd = self.q.copy(), np.zeros(6), np.zeros(6)
+        self._history.clear()
         self._pose_key = b""
         return True
 
