@@ -61,10 +61,12 @@ class PipelineSettings:
     publish_intensity: bool = False
     publish_profile_index: bool = False
     gil_switch_interval_s: float | None = 0.0005
-    """Python's thread switch interval while the pipeline runs (None: leave it). The readers
-    stamp each record with the host time when they get the GIL back after the receive call;
-    with Python's default 5 ms a busy worker delays those stamps by up to 5 ms, which the
-    sensor clock fit sees as transport jitter (its jump tolerance is 2 ms)."""
+    """Python's thread switch interval while the pipeline runs, for sensor drivers that stamp
+    a record when their thread gets the GIL back after the receive call: with Python's default
+    5 ms a busy worker delays those stamps by up to 5 ms, which the sensor clock fit sees as
+    transport jitter (its jump tolerance is 2 ms). Drivers whose stamps come from the kernel
+    (``kernel_stamps``, the UDP drivers on Linux) do not need it, and the interval is left
+    alone for them: every forced switch costs the worker a wake-up. None: always leave it."""
 
 
 class LatencyWindow:
@@ -332,7 +334,7 @@ class Pipeline:
     # --- life cycle -----------------------------------------------------------------------------
     def start(self) -> None:
         interval = self.settings.gil_switch_interval_s
-        if interval is not None:
+        if interval is not None and not getattr(self.sensor, "kernel_stamps", False):
             self._saved_switch_interval = sys.getswitchinterval()
             sys.setswitchinterval(min(interval, self._saved_switch_interval))
         self._started = True
