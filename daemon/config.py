@@ -203,6 +203,9 @@ class RobotConfig(_Model):
     """UR model name for the nominal kinematics (``UR5e``, ``UR10e``, ...)."""
     frequency_hz: Annotated[Float, Field(gt=0, le=500)] | None = None
     """RTDE output rate; None: the controller's maximum (500 Hz e-Series, 125 Hz CB3)."""
+    receive_backend: Literal["native", "ur_rtde"] = "native"
+    """How the state stream is read: ``native`` (our RTDE client: every packet, a blocking read)
+    or ``ur_rtde`` (its RTDEReceiveInterface, polled; it keeps only the newest packet)."""
     motion_enabled: Bool = False
     """Allow the daemon to move the robot (calibration sweeps). Off: receive only."""
     max_speed_m_s: Annotated[Float, Field(gt=0, le=3.0)] = 0.25

@@ -74,6 +74,8 @@ def make_devices(cfg: Config) -> Devices:
         workspace_max_m=r.workspace_max_m,
         model=r.model,
         read_kinematics=r.use_factory_kinematics,
+        # Only the built-in UR driver has the choice; plug-ins get their own options.
+        **({"receive_backend": r.receive_backend} if r.driver == "ur-rtde" else {}),
     )
     table: Device[Any] | None = None
     t = cfg.table

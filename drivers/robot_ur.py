@@ -1,46 +1,66 @@
-"""Universal Robots arm over RTDE through ``ur_rtde``: a state stream, and guarded motion.
+"""Universal Robots arm over RTDE: a state stream (own client or ``ur_rtde``), and guarded motion
+(``ur_rtde``).
 
 Why child processes
 -------------------
 ``ur_rtde``'s Python constructors (and ``reconnect``) hold the GIL while they block on the network,
 so in the caller's process they would freeze every other thread, the sensor path included, for as
 long as a connection takes (PROTOCOLS.md). Both ``ur_rtde`` interfaces therefore live in child
-processes of their own (``multiprocessing`` spawn); the caller's process only ever waits on pipes,
-which releases the GIL. A child that hangs or crashes is killed and restarted; the caller sees a
-state change, never an exception from the link.
+processes of their own (``multiprocessing`` spawn); the native receive client does too, which
+keeps its decoding off the caller's GIL and the two backends interchangeable. The caller's
+process only ever waits on pipes, which releases the GIL. A child that hangs or crashes is
+killed and restarted; the caller sees a state change, never an exception from the link.
 
 Receiving
 ---------
-The receive child runs ``RTDEReceiveInterface`` with a small recipe (:data:`REQUIRED_VARIABLES`)
-and polls it faster than the controller rate: ur_rtde keeps only the newest packet, and offers no
-wait for a new one. Its getters read the latest packet one call at a time, so two calls can see
-two packets; the child reads ``timestamp`` before and after the other getters and retries when it
-changed (``torn_reads`` in the health detail). Each new controller sample (deduplicated by
-timestamp) is stamped with the host's ``time.monotonic_ns()`` when the poll saw it (so up to one
-poll interval, ~0.4 ms, plus ur_rtde's own hand-over after its arrival) and sent to the caller's
-process as one fixed-size binary row (:data:`ROW_DTYPE`, 168 bytes) over a socket pair. The child
-never blocks on that pipe: rows wait in the child while the pipe is full and the oldest are
-dropped past ``queue_size`` (they then count as lost).
+The receive child subscribes to a small recipe (:data:`REQUIRED_VARIABLES`) with one of two
+clients (``receive_backend``) and sends each controller sample to the caller's process as one
+fixed-size binary row (:data:`ROW_DTYPE`, 168 bytes) over a socket pair, stamped with the host's
+``time.monotonic_ns()`` when the child got it.
+
+* ``"native"`` (default): :class:`~wristscan.drivers.rtde_receive.RtdeReceiver`, this package's
+  own RTDE client, reads the TCP stream itself. It sleeps in ``poll()`` until packets arrive
+  and ships every data package, in order; each is stamped right after the ``recv()`` that
+  completed it. Nothing is lost while the child is not scheduled: the kernel holds the
+  packets (a controller drops a client only after ~10 s of not reading), and they come out
+  together, with the stamp of the call that took them in, when the child runs again. No data
+  for ``stall_timeout_s`` counts as a lost link.
+* ``"ur_rtde"``: ``RTDEReceiveInterface``, polled faster than the controller rate, since ur_rtde
+  keeps only the newest packet and offers no wait for a new one. Its getters read the latest
+  packet one call at a time, so two calls can see two packets; the child reads ``timestamp``
+  before and after the other getters and retries when it changed (``torn_reads`` in the health
+  detail). Each new sample (deduplicated by timestamp) is stamped when the poll saw it (up to
+  one poll interval, ~0.4 ms, plus ur_rtde's own hand-over after its arrival).
+
+Why native is the default: the polling costs about a fifth of a core at 500 Hz and still loses
+the samples that arrive while the child waits for a CPU (5-14 % on a busy 2-core machine),
+which leaves gaps in the robot track (``docs/drivers.md``, "UR robot receive path"). ``ur_rtde``
+stays as the reference client.
+
+The child never blocks on the pipe to the caller: rows wait in the child while the pipe is full
+and the oldest are dropped past ``queue_size`` (they then count as lost).
 
 The caller's process turns rows into :class:`~wristscan.drivers.records.RobotState` records in
 order. Counters: ``duplicates`` (a timestamp delivered twice), ``reordered`` (older than the last
 delivered, dropped), ``lost`` (controller samples never delivered: a timestamp step larger than 1.5
 nominal periods counts ``round(step / period) - 1``; samples dropped from a full queue). The
-nominal period is ``1 / frequency_hz``; without ``frequency_hz`` ur_rtde asks for the
+nominal period is ``1 / frequency_hz``; without ``frequency_hz`` the client asks for the
 controller's maximum, 500 Hz (e-Series) or 125 Hz (CB3), told apart by the steps seen (the count
 is corrected once a step under 6 ms proves a 500 Hz stream). A controller restart (the timestamp
 falls by more than a second) starts a new sequence.
 
-Link loss: the child sees ``isConnected()`` false (or a getter failing), sets the interface
-aside and creates a new one with exponential :class:`~wristscan.drivers.base.Backoff`.
-``reconnect()`` is not used: in ur_rtde's source (1.5) it resets the frequency to the controller's
-maximum and waits without a timeout for the first packet. Dead interfaces are not destroyed
-either: ur_rtde's ``disconnect()`` (and so its destructor) sleeps 500 ms (measured with 1.6.5),
-which would stop the loop; a child exits without running them. The health state is
-``RECONNECTING`` until data flows again; every recovery counts one ``reconnects``. The child
-sends a heartbeat every 0.25 s; a child silent for ``stall_timeout_s`` (or ``connect_timeout_s``
-while connecting) is killed and restarted. All of this is driven from :meth:`read` /
-:meth:`health` calls: the caller's process runs no thread of the driver's.
+Link loss: the native client raises (end of stream, reset, silence); with ur_rtde the child
+sees ``isConnected()`` false (or a getter failing). Either way the child lets the link go and
+connects again with exponential :class:`~wristscan.drivers.base.Backoff`; unknown variable
+names (``NOT_FOUND``, native client) fail for good instead. For ur_rtde, ``reconnect()`` is not
+used: in ur_rtde's source (1.5) it resets the frequency to the controller's maximum and waits
+without a timeout for the first packet. Dead ur_rtde interfaces are not destroyed either:
+ur_rtde's ``disconnect()`` (and so its destructor) sleeps 500 ms (measured with 1.6.5), which
+would stop the loop; a child exits without running them. The health state is ``RECONNECTING``
+until data flows again; every recovery counts one ``reconnects``. The child sends a heartbeat
+every 0.25 s; a child silent for ``stall_timeout_s`` (or ``connect_timeout_s`` while
+connecting) is killed and restarted. All of this is driven from :meth:`read` / :meth:`health`
+calls: the caller's process runs no thread of the driver's.
 
 Motion
 ------
@@ -86,6 +106,7 @@ import contextlib
 import enum
 import logging
 import multiprocessing as mp
+import operator
 import os
 import pickle
 import re
@@ -115,6 +136,7 @@ from .base import (
     WorkspaceViolation,
 )
 from .records import RobotState
+from .rtde_receive import RtdeError, RtdeNotFound, RtdeReceiver
 
 if TYPE_CHECKING:
     from wristscan.calib.kinematics import DHParams
@@ -122,6 +144,7 @@ if TYPE_CHECKING:
     from .ur_primary import KinematicsInfo
 
 __all__ = [
+    "RECEIVE_BACKENDS",
     "REQUIRED_VARIABLES",
     "ROW_DTYPE",
     "MotionFailed",
@@ -143,10 +166,13 @@ REQUIRED_VARIABLES: tuple[str, ...] = (
 )
 """RTDE outputs the receive child always subscribes to."""
 
+RECEIVE_BACKENDS: tuple[str, ...] = ("native", "ur_rtde")
+"""Clients the receive child can read the stream with (see the module doc, "Receiving")."""
+
 ROW_DTYPE = np.dtype(
     [
         ("t", "<f8"),  # controller timestamp, s
-        ("host_ns", "<i8"),  # host monotonic ns when the poll saw the sample
+        ("host_ns", "<i8"),  # host monotonic ns when the receive child got the sample
         ("q", "<f8", (6,)),
         ("tcp", "<f8", (6,)),
         ("qd", "<f8", (6,)),
@@ -171,6 +197,7 @@ _E_SERIES_PERIOD_S = 0.002
 _CB3_PERIOD_S = 0.008
 _RESTART_DROP_S = 1.0
 _HEARTBEAT_S = 0.25
+_NATIVE_WAIT_S = 0.05  # longest wait for data before the native loop looks at the parent's pipe
 _WAIT_SLICE_S = 0.05
 _PATH_SAMPLES = 16
 _GRAVEYARD_MAX = 32
@@ -346,7 +373,10 @@ class _RxSpec:
     host: str
     frequency_hz: float | None
     variables: tuple[str, ...]
+    backend: str
     poll_s: float
+    connect_timeout_s: float
+    data_timeout_s: float
     backoff_initial_s: float
     backoff_max_s: float
     pending_max: int
@@ -365,12 +395,17 @@ def _receive_main(spec: _RxSpec, conn: Connection) -> None:
     """Body of the receive child."""
     link = _ChildLink(conn)
     _child_setup(link, spec.log_level)
+    loop: _ReceiveLoopBase
+    if spec.backend == "native":
+        loop = _NativeReceiveLoop(spec, conn, link)
+        loop.run()
+        return
     try:
         import rtde_receive
     except ImportError as exc:
         link.send_obj(("state", "failed", f"ur_rtde is not installed ({exc}): pip install ur-rtde"))
         return
-    loop = _ReceiveLoop(spec, conn, link, rtde_receive)
+    loop = _UrRtdeReceiveLoop(spec, conn, link, rtde_receive)
     loop.run()
     # Skip ur_rtde's destructors (``loop`` holds the interfaces until here): each ends in
     # disconnect(), which sleeps 500 ms by design; the OS closes the sockets, which the
@@ -378,44 +413,71 @@ def _receive_main(spec: _RxSpec, conn: Connection) -> None:
     os._exit(0)
 
 
-class _ReceiveLoop:
-    def __init__(self, spec: _RxSpec, conn: Connection, link: _ChildLink, module: Any) -> None:
+class _Fatal(Exception):
+    """A connection error that retrying cannot fix (the child reports it and ends)."""
+
+
+class _ReceiveLoopBase:
+    """The receive child's loop, whichever client it reads: connection and backoff, rows
+    queued for the parent without ever blocking on the pipe, heartbeats, state reports. A
+    backend supplies :meth:`open_link`, :meth:`step` and :meth:`dispose`."""
+
+    def __init__(self, spec: _RxSpec, conn: Connection, link: _ChildLink) -> None:
         self.spec = spec
         self.conn = conn
         self.link = link
-        self.module = module
-        self.iface: Any = None
         self.backoff = Backoff(spec.backoff_initial_s, spec.backoff_max_s)
         self.pending: deque[bytes] = deque()
-        self.stats = {"torn_reads": 0, "child_overflow": 0, "samples": 0}
+        self.stats: dict[str, int] = {"child_overflow": 0, "samples": 0}
         self.next_beat = 0.0
-        self.graveyard: list[Any] = []
 
+    # --- backend ---------------------------------------------------------------------------
+    def is_linked(self) -> bool:
+        raise NotImplementedError
+
+    def open_link(self) -> None:
+        """Connect; raise on failure (:class:`_Fatal` when retrying cannot help)."""
+        raise NotImplementedError
+
+    def step(self) -> None:
+        """Take in new samples (:meth:`push`), waiting briefly when there are none; raise when
+        the link is lost."""
+        raise NotImplementedError
+
+    def dispose(self) -> None:
+        """Let go of the link (after a loss, and at the end)."""
+        raise NotImplementedError
+
+    def give_up(self) -> bool:
+        """True when the child should end after a loss (the parent then starts a new one)."""
+        return False
+
+    def stop_requested(self) -> bool:
+        """True once the parent asked to stop or went away."""
+        return _stop_requested(self.conn)
+
+    # --- shared ----------------------------------------------------------------------------
     def state(self, name: str, error: str | None = None) -> None:
         self.link.send_obj(("state", name, error))
 
     def connect(self, first: bool) -> bool:
         self.state("connecting" if first else "reconnecting")
-        freq = -1.0 if self.spec.frequency_hz is None else float(self.spec.frequency_hz)
         try:
-            self.iface = self.module.RTDEReceiveInterface(
-                self.spec.host, freq, list(self.spec.variables)
-            )
+            self.open_link()
+        except _Fatal as exc:
+            self.state("failed", str(exc))
+            raise
         except Exception as exc:  # ur_rtde raises RuntimeError subclasses of many kinds
-            self.iface = None
-            self.state("down", f"{type(exc).__name__}: {exc}")
+            self.dispose()
+            self.state("down", str(exc) if isinstance(exc, RtdeError) else f"{exc!r}")
             return False
         self.backoff.reset()
         self.state("up")
         return True
 
-    def dispose(self) -> None:
-        """Forget the interface without destroying it: ur_rtde's disconnect() and destructor
-        each sleep 500 ms, which would stop this loop; the dead ones are few and end with the
-        process (past ``_GRAVEYARD_MAX`` the child exits and the parent starts a new one)."""
-        if self.iface is not None:
-            self.graveyard.append(self.iface)
-            self.iface = None
+    def push(self, row: bytes) -> None:
+        self.pending.append(row)
+        self.stats["samples"] += 1
 
     def flush(self) -> None:
         if self.pending and self.link.writable():
@@ -432,6 +494,156 @@ class _ReceiveLoop:
             self.next_beat = now + _HEARTBEAT_S
             if self.link.writable():
                 self.link.send_obj(("beat", dict(self.stats)))
+
+    def run(self) -> None:
+        first = True
+        try:
+            while not self.stop_requested() and not self.link.broken:
+                if not self.is_linked():
+                    ok = self.connect(first)
+                    first = False
+                    if not ok:
+                        if _wait_or_stop(self.conn, self.backoff.next_delay()):
+                            return
+                        continue
+                try:
+                    self.step()
+                except Exception as exc:  # any failure of the client means the link is gone
+                    self.dispose()
+                    reason = str(exc) if isinstance(exc, _LinkLost | RtdeError) else f"{exc!r}"
+                    self.state("reconnecting", reason)
+                    if self.give_up():
+                        return
+                    if _wait_or_stop(self.conn, self.backoff.next_delay()):
+                        return
+                    continue
+                self.flush()
+                self.beat(time.monotonic())
+        except _Fatal:
+            return
+        finally:
+            self.dispose()
+            self.flush()
+
+
+class _NativeReceiveLoop(_ReceiveLoopBase):
+    """Reads the stream with :class:`~wristscan.drivers.rtde_receive.RtdeReceiver`: sleeps in
+    ``poll()`` on the RTDE socket and the parent's pipe together, and ships every data package.
+    Each wake-up does little (one ``recv()``, a struct unpack and pack per package): at 500 Hz
+    the per-wake-up cost is most of the child's CPU."""
+
+    def __init__(self, spec: _RxSpec, conn: Connection, link: _ChildLink) -> None:
+        super().__init__(spec, conn, link)
+        self.client: RtdeReceiver | None = None
+        self.poller: select.poll | None = None
+        self.parent_pending = False
+        self.stats["text_messages"] = 0
+        self._text_before = 0
+        self._time_index = 0
+        self._pick: operator.itemgetter[Any] | None = None
+        self._safety_index = 0
+        self._runtime_index = 0
+
+    def is_linked(self) -> bool:
+        return self.client is not None
+
+    def stop_requested(self) -> bool:
+        # Read the pipe only when the poller saw something on it (or between connections).
+        if self.client is not None and not self.parent_pending:
+            return False
+        self.parent_pending = False
+        return _stop_requested(self.conn)
+
+    def open_link(self) -> None:
+        client = RtdeReceiver(
+            self.spec.host,
+            self.spec.variables,
+            self.spec.frequency_hz,
+            connect_timeout_s=self.spec.connect_timeout_s,
+            data_timeout_s=self.spec.data_timeout_s,
+        )
+        try:
+            client.open()
+        except RtdeNotFound as exc:
+            raise _Fatal(str(exc)) from exc
+        recipe = client.recipe
+        assert recipe is not None
+        # Position of each variable's first value in a package's unpacked tuple.
+        starts = dict(zip(recipe.names, np.cumsum([0, *recipe.counts[:-1]]).tolist(), strict=True))
+        self._time_index = starts["timestamp"]
+        vectors = ("actual_q", "actual_TCP_pose", "actual_qd")  # the row's order
+        self._pick = operator.itemgetter(*(starts[n] + i for n in vectors for i in range(6)))
+        self._safety_index = starts["safety_status_bits"]
+        self._runtime_index = starts["runtime_state"]
+        poller = select.poll()
+        poller.register(client.fileno(), select.POLLIN)
+        poller.register(self.conn.fileno(), select.POLLIN)
+        self.client, self.poller = client, poller
+        self._text_before = self.stats["text_messages"]
+
+    def step(self) -> None:
+        client, poller, pick = self.client, self.poller, self._pick
+        assert client is not None and poller is not None and pick is not None
+        for fd, _ in poller.poll(_NATIVE_WAIT_S * 1000):
+            if fd != client.fileno():
+                self.parent_pending = True
+        stamps, payloads = client.read_payloads(timeout=0)
+        self.stats["text_messages"] = self._text_before + client.counters["text_messages"]
+        if not stamps:
+            return
+        assert client.recipe is not None
+        ti, si, ri = self._time_index, self._safety_index, self._runtime_index
+        for v, host_ns in zip(client.recipe.struct.iter_unpack(payloads), stamps, strict=True):
+            flags = (FLAG_PROTECTIVE_STOP if v[si] & _SAFETY_PROTECTIVE_BIT else 0) | (
+                FLAG_PROGRAM_RUNNING if v[ri] == _RUNTIME_PLAYING else 0
+            )
+            self.push(_ROW.pack(v[ti], host_ns, *pick(v), flags, 0))
+
+    def dispose(self) -> None:
+        if self.client is not None:
+            self.client.close()
+            self.client = None
+            self.poller = None
+
+
+class _UrRtdeReceiveLoop(_ReceiveLoopBase):
+    """Polls ur_rtde's ``RTDEReceiveInterface`` (the reference client; see the module doc)."""
+
+    def __init__(self, spec: _RxSpec, conn: Connection, link: _ChildLink, module: Any) -> None:
+        super().__init__(spec, conn, link)
+        self.module = module
+        self.iface: Any = None
+        self.graveyard: list[Any] = []
+        self.last_t: float | None = None
+        self.stats["torn_reads"] = 0
+
+    def is_linked(self) -> bool:
+        return self.iface is not None
+
+    def open_link(self) -> None:
+        freq = -1.0 if self.spec.frequency_hz is None else float(self.spec.frequency_hz)
+        self.iface = self.module.RTDEReceiveInterface(
+            self.spec.host, freq, list(self.spec.variables)
+        )
+
+    def dispose(self) -> None:
+        """Forget the interface without destroying it: ur_rtde's disconnect() and destructor
+        each sleep 500 ms, which would stop this loop; the dead ones are few and end with the
+        process (past ``_GRAVEYARD_MAX`` the child exits and the parent starts a new one)."""
+        if self.iface is not None:
+            self.graveyard.append(self.iface)
+            self.iface = None
+
+    def give_up(self) -> bool:
+        return len(self.graveyard) > _GRAVEYARD_MAX  # the parent restarts the process
+
+    def step(self) -> None:
+        got = self.sample(self.last_t)
+        if got is None:
+            time.sleep(self.spec.poll_s)
+            return
+        self.last_t, row = got
+        self.push(row)
 
     def sample(self, last_t: float | None) -> tuple[float, bytes] | None:
         """The newest sample if it is new, read consistently; None when nothing new."""
@@ -458,42 +670,6 @@ class _ReceiveLoop:
             )
             return t1, _ROW.pack(t1, host_ns, *q, *tcp, *qd, flags, 0)
         return None  # packets arrive faster than a consistent read: try again next poll
-
-    def run(self) -> None:
-        first = True
-        last_t: float | None = None
-        try:
-            while not _stop_requested(self.conn) and not self.link.broken:
-                if self.iface is None:
-                    ok = self.connect(first)
-                    first = False
-                    if not ok:
-                        if _wait_or_stop(self.conn, self.backoff.next_delay()):
-                            return
-                        continue
-                try:
-                    got = self.sample(last_t)
-                except Exception as exc:  # a getter failing means the link is gone
-                    self.dispose()
-                    reason = str(exc) if isinstance(exc, _LinkLost) else f"{exc!r}"
-                    self.state("reconnecting", reason)
-                    if len(self.graveyard) > _GRAVEYARD_MAX:
-                        return  # the parent restarts the process, which frees them
-                    if _wait_or_stop(self.conn, self.backoff.next_delay()):
-                        return
-                    continue
-                if got is None:
-                    self.flush()
-                    self.beat(time.monotonic())
-                    time.sleep(self.spec.poll_s)
-                    continue
-                last_t, row = got
-                self.pending.append(row)
-                self.stats["samples"] += 1
-                self.flush()
-        finally:
-            self.dispose()
-            self.flush()
 
 
 @dataclass(frozen=True)
@@ -821,7 +997,10 @@ class URRobot(Robot):
     125 Hz CB3). ``variables``: extra RTDE outputs to subscribe (the receive child always reads
     :data:`REQUIRED_VARIABLES`; extra ones only widen the recipe). ``model``: UR model name or
     DH parameters for the ``move_j`` workspace check (the factory calibration wins when
-    ``read_kinematics`` is set). Caps and the workspace box: see :class:`Robot`.
+    ``read_kinematics`` is set). ``receive_backend``: the client of the receive child,
+    ``"native"`` (default: lossless, nearly no CPU) or ``"ur_rtde"`` (the reference client;
+    see the module doc, "Receiving"). ``poll_interval_s`` applies to ``"ur_rtde"`` only.
+    Caps and the workspace box: see :class:`Robot`.
     """
 
     def __init__(
@@ -847,6 +1026,7 @@ class URRobot(Robot):
         backoff_max_s: float = 2.0,
         poll_interval_s: float | None = None,
         queue_size: int = 8192,
+        receive_backend: str = "native",
     ) -> None:
         super().__init__(
             motion_enabled=motion_enabled,
@@ -869,11 +1049,17 @@ class URRobot(Robot):
                 raise DriverInitError("robot: the workspace box corners need 3 values each")
             if not np.all(self.workspace_min_m < self.workspace_max_m):
                 raise DriverInitError("robot: workspace_max_m must exceed workspace_min_m")
+        if receive_backend not in RECEIVE_BACKENDS:
+            raise DriverInitError(
+                f"robot: receive_backend must be one of {', '.join(RECEIVE_BACKENDS)}, "
+                f"got {receive_backend!r}"
+            )
         extra = [v for v in (variables or ()) if v not in REQUIRED_VARIABLES]
         if not all(isinstance(v, str) and v for v in extra):
             raise DriverInitError("robot: variables must be RTDE output names")
         self.host = host
         self.frequency_hz = frequency_hz
+        self.receive_backend = receive_backend
         self.model = model
         self.variables: tuple[str, ...] = (*REQUIRED_VARIABLES, *dict.fromkeys(extra))
         self.read_kinematics = read_kinematics
@@ -983,7 +1169,11 @@ class URRobot(Robot):
             host=self.host,
             frequency_hz=self.frequency_hz,
             variables=self.variables,
+            backend=self.receive_backend,
             poll_s=self.poll_interval_s,
+            # The child reports a failed attempt itself, before the parent's patience ends.
+            connect_timeout_s=min(5.0, self.connect_timeout_s / 2),
+            data_timeout_s=self.stall_timeout_s,
             backoff_initial_s=self.backoff_initial_s,
             backoff_max_s=self.backoff_max_s,
             pending_max=self.queue_size,
@@ -993,7 +1183,7 @@ class URRobot(Robot):
         proc = self._ctx.Process(
             target=_receive_main,
             args=(spec, child_conn),
-            name=f"ur-rtde-receive-{self.host}",
+            name=f"ur-receive-{self.receive_backend}-{self.host}",
             daemon=True,
         )
         proc.start()
@@ -1190,6 +1380,7 @@ class URRobot(Robot):
         return {
             "host": self.host,
             "receive": rx.state if rx is not None else "stopped",
+            "receive_backend": self.receive_backend,
             "period_s": self._period_s,
             "queued": len(self._queue),
             "queue_overflow": self._overflow,
