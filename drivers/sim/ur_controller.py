@@ -1748,6 +1748,11 @@ class SimulatedController:
         proc, conn = self._proc, self._conn
         if proc is None:
             return
+        if getattr(proc, "_popen", None) is None:  # start() failed before the process ran
+            if conn is not None:
+                conn.close()
+            self._proc = self._conn = None
+            return
         try:
             if conn is not None:
                 conn.send(("stop",))
