@@ -177,7 +177,7 @@ class SensorSimConfig:
     """Exposures more than this late (an overloaded host) are skipped, leaving counter gaps."""
     batch_s: float = 0.001
     """Exposures are ray-cast together when they fall due within this window (at most a
-    quarter of ``latency_s``, so that they are still sent on time)."""
+    quarter of ``latency_s + precompute_s``, so that they are still sent on time)."""
     precompute_s: float = 0.003
     """Exposures are ray-cast up to this long before they happen, as soon as the truth rings
     cover them (the controller and the table write them ahead), and sent at their send time:
@@ -1291,9 +1291,10 @@ class _Runtime:
 
     def run(self) -> None:
         self.conn.send(("ready", self.link.endpoint()))
-        # Gather exposures for one vectorised ray-cast for at most a quarter of the latency: the
-        # batch must still be computed and sent by its exposures' send time.
-        batch_ns = min(int(self.cfg.batch_s * 1e9), self.latency_ns // 4) - self.precompute_ns
+        # Gather exposures for one vectorised ray-cast, for at most a quarter of the time
+        # between computing ahead and sending: the batch must still go out at its send time.
+        gather_ns = min(int(self.cfg.batch_s * 1e9), (self.latency_ns + self.precompute_ns) // 4)
+        batch_ns = gather_ns - self.precompute_ns  # wake this long after the next exposure
         while self.running:
             now = time.monotonic_ns()
             if self.down_until_ns and now >= self.down_until_ns:
