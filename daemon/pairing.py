@@ -29,7 +29,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -190,6 +190,41 @@ class PairedBatch:
         return int(self.y.shape[0])
 
 
+def _concat(batches: list[PairedBatch]) -> PairedBatch:
+    """One batch of the profiles of ``batches``, in order (the points are copied once)."""
+    if len(batches) == 1:
+        return batches[0]
+
+    def cat(name: str) -> Any:
+        parts = [getattr(b, name) for b in batches]
+        return None if any(p is None for p in parts) else np.concatenate(parts)
+
+    sizes = [b.n_profiles for b in batches]
+    first = np.cumsum([0, *sizes[:-1]])
+    point_base = np.cumsum([0, *[b.n_points for b in batches[:-1]]])
+    index = np.concatenate(
+        [b.profile_index + np.uint32(f) for b, f in zip(batches, first, strict=True)]
+    )
+    offsets = np.concatenate(
+        [[0], *[b.offsets[1:] + p for b, p in zip(batches, point_base, strict=True)]]
+    ).astype(np.int64)
+    return PairedBatch(
+        sensor_id=cat("sensor_id"),
+        frame_counter=cat("frame_counter"),
+        exposure_ns=cat("exposure_ns"),
+        clock_uncertainty_ns=cat("clock_uncertainty_ns"),
+        flange2base=cat("flange2base"),
+        table_angle=cat("table_angle"),
+        y=cat("y"),
+        z=cat("z"),
+        valid=cat("valid"),
+        intensity=cat("intensity"),
+        profile_index=index,
+        offsets=offsets,
+        arrival_ns=cat("arrival_ns"),
+    )
+
+
 class Pairer:
     """Pairs profiles with robot/table states; see the module docstring."""
 
@@ -227,6 +262,9 @@ class Pairer:
         self._now = -(1 << 62)
         self.received = 0
         self.paired = 0
+        self.waiting_for_states = 0
+        """Profiles the last :meth:`poll` left waiting only for robot or table states to arrive
+        (their clocks locked): a worker may wait briefly for those instead of a whole tick."""
         self.dropped: dict[str, int] = dict.fromkeys(DROP_REASONS, 0)
         self.robot_states = 0
         self.table_states = 0
@@ -365,6 +403,7 @@ class Pairer:
             self._pair_table(status, exposure, angle)
 
         waiting = (status > _READY) & (status < _D_FIRST)
+        self.waiting_for_states = int(np.count_nonzero((status == _W_ROBOT) | (status == _W_TABLE)))
         late = waiting & (now - host > self.config.max_wait_ns)
         drop = (status >= _D_FIRST) | late
         if np.any(drop):
@@ -386,6 +425,21 @@ class Pairer:
         if ready.shape[0] or np.any(drop):
             self._keep(np.flatnonzero(waiting & ~late))
         return batches
+
+    def merge(self, batches: list[PairedBatch]) -> list[PairedBatch]:
+        """Consecutive batches joined (up to ``max_batch_profiles`` profiles each), in order."""
+        out: list[PairedBatch] = []
+        group: list[PairedBatch] = []
+        n = 0
+        for b in batches:
+            if group and n + b.n_profiles > self.config.max_batch_profiles:
+                out.append(_concat(group))
+                group, n = [], 0
+            group.append(b)
+            n += b.n_profiles
+        if group:
+            out.append(_concat(group))
+        return out
 
     def flush(self, now_ns: int | None = None) -> list[PairedBatch]:
         """Poll once more, then drop whatever still waits (reason ``flushed``)."""

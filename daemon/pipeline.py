@@ -58,6 +58,10 @@ class PipelineSettings:
     profile_queue: int = 4096
     state_queue: int = 65536
     status_period_s: float = 1.0
+    state_wait_s: float = 0.005
+    """At a tick, wait up to this long for the robot (or table) states that profiles already
+    received still need (the state after their exposure is a few ms away), and publish them in
+    this tick's batch instead of one whole period later."""
     publish_intensity: bool = False
     publish_profile_index: bool = False
     gil_switch_interval_s: float | None = 0.0005
@@ -147,8 +151,10 @@ class _Reader(Generic[T]):
         maxsize: int,
         on_drop: Callable[[], None],
         on_fail: Callable[[BaseException], None],
+        signal: threading.Event | None = None,
     ) -> None:
         self.device = device
+        self.signal = signal
         self.sink = sink
         self.maxsize = maxsize
         self._on_drop = on_drop
@@ -168,7 +174,7 @@ class _Reader(Generic[T]):
 
     def _run(self) -> None:
         _name_os_thread(self.thread.name)
-        sink, maxsize, read = self.sink, self.maxsize, self.device.read
+        sink, maxsize, read, signal = self.sink, self.maxsize, self.device.read, self.signal
         try:
             while not self._stop.is_set():
                 try:
@@ -183,6 +189,8 @@ class _Reader(Generic[T]):
                     continue
                 if len(sink) < maxsize:
                     sink.append(rec)
+                    if signal is not None:
+                        signal.set()
                 else:
                     self._on_drop()
         except BaseException as exc:
@@ -229,6 +237,7 @@ class Pipeline:
         # counters it reads then add up exactly (no profile is half-way between two of them).
         self._tick_lock = threading.Lock()
         self._stop = threading.Event()
+        self._states_arrived = threading.Event()
         self._failure: BaseException | None = None
         self._last_progress_ns = time.monotonic_ns()
         self._utc_offset_ns = time.time_ns() - time.monotonic_ns()
@@ -236,11 +245,27 @@ class Pipeline:
             _Reader(
                 "sensor", sensor, self._profiles, s.profile_queue, self._drop_profile, self._fail
             ),
-            _Reader("robot", robot, self._robot_q, s.state_queue, self._drop_state, self._fail),
+            _Reader(
+                "robot",
+                robot,
+                self._robot_q,
+                s.state_queue,
+                self._drop_state,
+                self._fail,
+                self._states_arrived,
+            ),
         ]
         if table is not None:
             self._readers.append(
-                _Reader("table", table, self._table_q, s.state_queue, self._drop_state, self._fail)
+                _Reader(
+                    "table",
+                    table,
+                    self._table_q,
+                    s.state_queue,
+                    self._drop_state,
+                    self._fail,
+                    self._states_arrived,
+                )
             )
         self._worker = threading.Thread(target=self._work, name="pipeline-worker", daemon=True)
         self._started = False
@@ -360,17 +385,33 @@ class Pipeline:
             self._saved_switch_interval = None
 
     # --- worker ---------------------------------------------------------------------------------
-    def _drain(self) -> None:
+    def _drain(self, profiles_too: bool = True) -> None:
         pairer = self.pairer
         # States first: the profiles drained after them find their robot samples in place.
         # Only what is there now: later arrivals wait for the next tick.
+        self._states_arrived.clear()
         robot, table, profiles = self._robot_q, self._table_q, self._profiles
         for _ in range(len(robot)):
             pairer.add_robot_state(robot.popleft())
         for _ in range(len(table)):
             pairer.add_table_state(table.popleft())
-        for _ in range(len(profiles)):
-            pairer.add_profile(profiles.popleft())
+        if profiles_too:
+            for _ in range(len(profiles)):
+                pairer.add_profile(profiles.popleft())
+
+    def _pair(self, stopping: bool) -> list[PairedBatch]:
+        """This tick's batches: pair what arrived, then wait up to ``state_wait_s`` for the
+        states that received profiles still need (not while stopping)."""
+        self._drain()
+        batches = self.pairer.poll()
+        deadline = time.monotonic() + self.settings.state_wait_s
+        while self.pairer.waiting_for_states and not stopping:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or not self._states_arrived.wait(remaining):
+                break
+            self._drain(profiles_too=False)
+            batches.extend(self.pairer.poll())
+        return self.pairer.merge(batches) if len(batches) > 1 else batches
 
     def _emit(self, batch: PairedBatch) -> None:
         if self._on_batch is not None:
@@ -423,8 +464,7 @@ class Pipeline:
                 next_tick = max(next_tick + period, time.monotonic())
                 with self._tick_lock:
                     self._tick_ns = time.monotonic_ns()
-                    self._drain()
-                    batches = self.pairer.poll()
+                    batches = self._pair(stopping)
                     if stopping:
                         if getattr(self, "_drain_on_stop", True):
                             batches.extend(self.pairer.flush())

@@ -443,3 +443,38 @@ def test_latency_window_keeps_the_latest_profiles_per_stage() -> None:
     w.add(e, e + 5 * ms, 110 * ms, 111 * ms)
     s = w.summary()
     assert s["transport"]["p50"] == 5.0 and s["total"]["max"] == 11.0
+
+
+def test_merge_joins_batches_in_order_up_to_the_profile_limit() -> None:
+    from wristscan.daemon.pairing import PairedBatch, Pairer, PairerConfig
+
+    def batch(first: int, sizes: list[int]) -> PairedBatch:
+        p = len(sizes)
+        offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        n = int(offsets[-1])
+        return PairedBatch(
+            sensor_id=np.ones(p, np.int64),
+            frame_counter=np.arange(first, first + p),
+            exposure_ns=np.arange(first, first + p) * 1000,
+            clock_uncertainty_ns=np.zeros(p),
+            flange2base=np.broadcast_to(np.eye(4), (p, 4, 4)).copy(),
+            table_angle=None,
+            y=np.arange(n, dtype=float) + 100 * first,
+            z=np.zeros(n),
+            valid=np.ones(n, bool),
+            intensity=None,
+            profile_index=np.repeat(np.arange(p, dtype=np.uint32), sizes),
+            offsets=offsets,
+            arrival_ns=np.arange(first, first + p) * 1000 + 5,
+        )
+
+    pairer = Pairer(PairerConfig(max_batch_profiles=5))
+    merged = pairer.merge([batch(0, [2, 3]), batch(2, [1]), batch(3, [4, 1, 2])])
+    # 2 + 1 profiles fit in one batch; the next three would exceed 5.
+    assert [m.n_profiles for m in merged] == [3, 3]
+    m = merged[0]
+    assert m.frame_counter.tolist() == [0, 1, 2] and m.arrival_ns.tolist() == [5, 1005, 2005]
+    assert m.offsets.tolist() == [0, 2, 5, 6]
+    assert m.profile_index.tolist() == [0, 0, 1, 1, 1, 2]
+    assert m.y.tolist() == [0, 1, 2, 3, 4, 200]
+    assert merged[1].offsets.tolist() == [0, 4, 5, 7]
