@@ -44,13 +44,6 @@ sys.path.insert(0, str(Path(__file__).parent))
 from _report import Figure, report
 
 from wristscan.calib import se3
-from wristscan.daemon.calibfile import (
-    Calibration,
-    Residuals,
-    RobotIdentity,
-    SensorIdentity,
-    write_calibration,
-)
 from wristscan.daemon.config import load_config
 from wristscan.daemon.scanjob import (
     MergeOptions,
@@ -63,7 +56,12 @@ from wristscan.daemon.scanjob import (
     voxel_mean,
 )
 from wristscan.daemon.scanplan import ScanPlan, describe_plan, down_matrix, generate_plan
-from wristscan.daemon.simcell import dump_toml, free_sim_config, start_cell
+from wristscan.daemon.simcell import (
+    dump_toml,
+    free_sim_config,
+    start_cell,
+    write_truth_calibrations,
+)
 from wristscan.drivers.sim.scene import (
     Box,
     Cylinder,
@@ -212,33 +210,6 @@ def bad_profiles(
     return masks, medians
 
 
-def _write_truth(folder: Path, truth: dict[str, Any]) -> None:
-    robot, sensor = RobotIdentity("UR5e"), SensorIdentity("lpf1-udp", "1")
-    write_calibration(
-        folder / "s2f.json",
-        Calibration(
-            kind="sensor2flange",
-            transform=np.array(truth["sensor2flange"]),
-            robot=robot,
-            sensor=sensor,
-            method="simulation ground truth",
-            residuals=Residuals(0.0),
-        ),
-    )
-    write_calibration(
-        folder / "table.json",
-        Calibration(
-            kind="table",
-            transform=se3.invert(np.array(truth["table_zero2base"])),
-            robot=robot,
-            sensor=sensor,
-            method="simulation ground truth",
-            residuals=Residuals(0.0),
-            parameters={"encoder_offset_rad": 0.0},
-        ),
-    )
-
-
 def run(speed_m_s: float = 0.02, keep: Path | None = None) -> int:
     logging.basicConfig(level=logging.WARNING)
     tmp = tempfile.TemporaryDirectory(prefix="wristscan-bench-scan-")
@@ -269,7 +240,7 @@ def run(speed_m_s: float = 0.02, keep: Path | None = None) -> int:
     cell = start_cell(cfg)
     try:
         truth = cell.truth()
-        _write_truth(folder, truth)
+        write_truth_calibrations(cfg, truth)
         res = run_scan(
             cfg,
             plan,

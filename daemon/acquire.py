@@ -11,6 +11,10 @@ with Acquisition(cfg) as acq:
 
 Recording stops at the end of the block, after the profiles exposed inside it have been paired
 (the synchroniser waits for the robot states that bracket them).
+
+The procedures open it with :func:`open_retrying` (a device that does not answer in time is
+tried again) and move inside :func:`stop_on_failure`, which stops the robot (and the table) when
+anything goes wrong.
 """
 
 from __future__ import annotations
@@ -18,10 +22,10 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,7 +35,7 @@ from .devices import Devices, make_devices, pairer_config, robot_model
 from .pairing import PairedBatch, Pairer
 from .pipeline import AlignmentSetup, Pipeline, PipelineSettings
 
-__all__ = ["Acquisition", "Recording", "Sweep"]
+__all__ = ["Acquisition", "Recording", "Sweep", "open_retrying", "stop_on_failure"]
 
 log = logging.getLogger(__name__)
 
@@ -216,3 +220,66 @@ class Acquisition:
 
     def stats(self) -> dict[str, Any]:
         return self.pipeline.stats()
+
+    def stop_motion(self, table: bool = True) -> None:
+        """Stop the robot and, with ``table``, the table, as after a failure: a stop that fails
+        is logged, not raised (the other device must still be stopped, and the error that led
+        here matters more)."""
+        stops = [("robot", self.robot.stop)]
+        if table:
+            stops.append(("table", getattr(self.table, "stop", None)))
+        for name, stop in stops:
+            if stop is None:
+                continue
+            try:
+                stop()
+            except Exception as exc:
+                log.warning("stopping the %s after an abort: %s", name, exc)
+
+
+class _Openable(Protocol):
+    def open(self) -> Any: ...
+
+
+_D = TypeVar("_D", bound=_Openable)
+
+
+def open_retrying(make: Callable[[], _D], attempts: int = 1) -> _D:
+    """``make()`` (an :class:`Acquisition`, a device), opened. When a device does not answer in
+    time (``DriverTimeout``: a controller busy starting up) a new one is made and tried again,
+    ``attempts`` times in all; the last timeout and any other error propagate."""
+    from wristscan.drivers.base import DriverTimeout
+
+    for attempt in range(1, max(1, attempts) + 1):
+        obj = make()
+        try:
+            obj.open()
+            return obj
+        except DriverTimeout as exc:
+            if attempt >= attempts:
+                raise
+            log.warning("%s; trying again", exc)
+    raise AssertionError("unreachable")
+
+
+@contextmanager
+def stop_on_failure(
+    acq: Acquisition,
+    abort: Callable[[str], BaseException],
+    also: tuple[type[BaseException], ...] = (),
+    *,
+    table: bool = True,
+) -> Iterator[None]:
+    """Stop the robot (and, with ``table``, the table) when anything escapes the block. A driver
+    error, Ctrl-C or an exception of the types ``also`` is then raised as ``abort(reason)``
+    (from it; ``reason`` is "interrupted" for Ctrl-C, else its text); anything else as it is."""
+    from wristscan.drivers.base import DriverError
+
+    try:
+        yield
+    except BaseException as exc:
+        acq.stop_motion(table=table)
+        if not isinstance(exc, (DriverError, KeyboardInterrupt, *also)):
+            raise
+        reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else str(exc)
+        raise abort(reason) from exc

@@ -43,14 +43,14 @@ from wristscan.calib.latency import LatencyEstimate, estimate_latency
 
 from .calib_table import (
     BallMeasurement,
-    BallScanner,
     ProcedureError,
     Progress,
+    ball_scanner,
     guarded_motion,
     load_sensor_calibration,
-    procedure_config,
+    no_progress,
+    procedure_acquisition,
     require_motion,
-    wait_until_pairing,
     write_json_atomic,
 )
 from .config import Config
@@ -204,8 +204,6 @@ def calibrate_latency(
     :class:`~.calib_table.ProcedureError` without a sensor calibration or when the sweeps cannot
     separate the latency, :class:`~.calib_table.ProcedureAborted` when the run stopped part way.
     """
-    from .acquire import Acquisition
-
     opts = options or LatencyOptions()
     require_motion(cfg, confirmed)
     calib = load_sensor_calibration(cfg)
@@ -214,26 +212,13 @@ def calibrate_latency(
     speeds = _capped(opts.speeds_m_s, cap)
     plan = [(v, d) for v in speeds for _ in range(opts.repeats) for d in (1, -1)]
     total = len(plan) + 3
-    report = progress or (lambda done, total, text: None)
+    report = progress or no_progress
     t_start = time.monotonic()
+    report(0, total, "connecting, waiting for paired profiles")
 
-    with acquisition or Acquisition(procedure_config(cfg)) as acq:
-        report(0, total, "connecting, waiting for paired profiles")
-        wait_until_pairing(acq)
+    with procedure_acquisition(cfg, acquisition) as acq:
         with guarded_motion(acq, "latency calibration"):
-            scanner = BallScanner(
-                acq,
-                s2f,
-                radius_m=opts.ball_radius_m,
-                standoff_m=opts.standoff_m,
-                travel_speed_m_s=opts.travel_speed_m_s,
-                accel_m_s2=opts.accel_m_s2,
-            )
-            guess = (
-                np.asarray(opts.ball_guess_m, dtype=np.float64)
-                if opts.ball_guess_m is not None
-                else scanner.ball_in_front()
-            )
+            scanner, guess = ball_scanner(acq, s2f, opts, opts.accel_m_s2)
             report(1, total, "locating the ball")
             first = scanner.locate(
                 guess,

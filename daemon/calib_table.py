@@ -38,9 +38,10 @@ import logging
 import math
 import time
 from collections.abc import Callable, Iterator, Sequence
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -67,6 +68,7 @@ if TYPE_CHECKING:
 __all__ = [
     "BallMeasurement",
     "BallNotFound",
+    "BallOptions",
     "BallScanner",
     "MotionNotConfirmed",
     "ProcedureAborted",
@@ -75,11 +77,15 @@ __all__ = [
     "TableOptions",
     "TableResult",
     "ball_from_sweep",
+    "ball_scanner",
     "calibrate_table",
+    "calibration_in_force",
     "direction_cov",
     "guarded_motion",
     "identities",
     "load_sensor_calibration",
+    "no_progress",
+    "procedure_acquisition",
     "procedure_config",
     "require_motion",
     "residual_components",
@@ -98,6 +104,11 @@ FloatArray = NDArray[np.float64]
 
 Progress = Callable[[int, int, str], None]
 """Progress callback: ``(steps done, steps in total, what happens now)``."""
+
+
+def no_progress(done: int, total: int, text: str) -> None:
+    """The :data:`Progress` callback of a caller that does not follow the progress."""
+
 
 _MIN_BALL_POINTS = 200
 _SETTLE_TIMEOUT_S = 20.0
@@ -153,24 +164,43 @@ def identities(cfg: Config) -> tuple[RobotIdentity, SensorIdentity]:
     )
 
 
-def load_sensor_calibration(cfg: Config) -> Calibration:
-    """The sensor2flange calibration of ``[calibration] file``; :class:`ProcedureError` when
-    there is none or it cannot be used (the ball centres need it)."""
-    path = cfg.calibration.file
+def calibration_in_force(
+    cfg: Config,
+    kind: Literal["sensor2flange", "table"],
+    needed_for: str,
+    error: type[ProcedureError] = ProcedureError,
+) -> Calibration:
+    """The calibration in force of ``kind`` (``[calibration] file`` or ``table_file``), checked
+    against the robot (and, for the sensor calibration, the sensor) of ``cfg`` when
+    ``check_identity`` is set. Raises ``error`` when the file is not set (``needed_for`` says
+    what needs it) or cannot be used."""
+    sensor = kind == "sensor2flange"
+    path = cfg.calibration.file if sensor else cfg.calibration.table_file
     if path is None:
-        raise ProcedureError(
-            f"{cfg.source}: [calibration] file is not set: this procedure needs the sensor "
-            "calibration to put the ball in the robot base frame (run wristscan calibrate sensor "
-            "first)"
-        )
+        key = "file" if sensor else "table_file"
+        raise error(f"{cfg.source}: [calibration] {key} is not set: {needed_for}")
     robot_id, sensor_id = identities(cfg)
     check = cfg.calibration.check_identity
     try:
         return read_calibration(
-            path, robot_id if check else None, sensor_id if check else None, kind="sensor2flange"
+            path,
+            robot_id if check else None,
+            sensor_id if check and sensor else None,
+            kind=kind,
         )
     except CalibrationFileError as exc:
-        raise ProcedureError(f"sensor calibration: {exc}") from None
+        raise error(f"{'sensor' if sensor else 'table'} calibration: {exc}") from None
+
+
+def load_sensor_calibration(cfg: Config) -> Calibration:
+    """The sensor2flange calibration of ``[calibration] file``; :class:`ProcedureError` when
+    there is none or it cannot be used (the ball centres need it)."""
+    return calibration_in_force(
+        cfg,
+        "sensor2flange",
+        "this procedure needs the sensor calibration to put the ball in the robot base frame "
+        "(run wristscan calibrate sensor first)",
+    )
 
 
 def procedure_config(cfg: Config) -> Config:
@@ -181,6 +211,37 @@ def procedure_config(cfg: Config) -> Config:
     out = cfg.model_copy(update={"pipeline": cfg.pipeline.model_copy(update={"frame": "base"})})
     out._source = cfg.source
     return out
+
+
+@contextlib.contextmanager
+def procedure_acquisition(
+    cfg: Config,
+    acquisition: Acquisition | None = None,
+    *,
+    attempts: int = 1,
+    open_error: type[ProcedureError] | None = None,
+) -> Iterator[Acquisition]:
+    """An open acquisition on the devices of ``cfg`` with the points in the base frame
+    (:func:`procedure_config`), once profiles are being paired (:func:`wait_until_pairing`);
+    closed when the block ends. ``acquisition``: an already built one (tests, benchmarks).
+    ``attempts``: tries when a device does not answer in time. ``open_error``: what a device
+    error while opening becomes (None: the driver's error goes on)."""
+    from wristscan.drivers.base import DriverError
+
+    from .acquire import Acquisition, open_retrying
+
+    try:
+        if acquisition is not None:
+            acq = acquisition.open()
+        else:
+            acq = open_retrying(lambda: Acquisition(procedure_config(cfg)), attempts)
+    except DriverError as exc:
+        if open_error is None:
+            raise
+        raise open_error(f"cannot open the devices: {exc}") from None
+    with acq:
+        wait_until_pairing(acq)
+        yield acq
 
 
 # --------------------------------------------------------------------------------------------
@@ -513,35 +574,53 @@ class BallScanner:
         return dataclasses.replace(ball, rescans=rescans + ball.rescans)
 
 
-@contextlib.contextmanager
-def guarded_motion(acq: Acquisition, what: str) -> Iterator[None]:
+class BallOptions(Protocol):
+    """The settings of a ball procedure that :func:`ball_scanner` reads (SI units)."""
+
+    @property
+    def ball_guess_m(self) -> tuple[float, float, float] | None: ...
+    @property
+    def ball_radius_m(self) -> float: ...
+    @property
+    def standoff_m(self) -> float: ...
+    @property
+    def travel_speed_m_s(self) -> float: ...
+
+
+def ball_scanner(
+    acq: Acquisition,
+    sensor2flange: ArrayLike,
+    opts: BallOptions,
+    accel_m_s2: float | None = None,
+) -> tuple[BallScanner, FloatArray]:
+    """A :class:`BallScanner` with the settings of ``opts``, and where the ball is looked for
+    first: ``opts.ball_guess_m`` or, when None, ``standoff_m`` in front of the sensor as it
+    stands."""
+    scanner = BallScanner(
+        acq,
+        sensor2flange,
+        radius_m=opts.ball_radius_m,
+        standoff_m=opts.standoff_m,
+        travel_speed_m_s=opts.travel_speed_m_s,
+        accel_m_s2=accel_m_s2,
+    )
+    if opts.ball_guess_m is not None:
+        return scanner, np.asarray(opts.ball_guess_m, dtype=np.float64)
+    return scanner, scanner.ball_in_front()
+
+
+def guarded_motion(acq: Acquisition, what: str) -> AbstractContextManager[None]:
     """Stop the robot and the table when anything goes wrong inside the block and re-raise it
     as :class:`ProcedureAborted` (driver errors, Ctrl-C), saying that nothing was written."""
-    from wristscan.drivers.base import DriverError
+    from .acquire import stop_on_failure
 
-    try:
-        yield
-    except (DriverError, KeyboardInterrupt, ProcedureError) as exc:
-        _stop_everything(acq)
-        if isinstance(exc, ProcedureError) and not isinstance(exc, ProcedureAborted):
-            raise
-        reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else str(exc)
-        raise ProcedureAborted(
+    def abort(reason: str) -> ProcedureAborted:
+        return ProcedureAborted(
             f"{what} aborted: {reason}; nothing was written, the calibration in force stays"
-        ) from exc
-    except BaseException:
-        _stop_everything(acq)
-        raise
+        )
 
-
-def _stop_everything(acq: Acquisition) -> None:
-    for name, stop in (("robot", acq.robot.stop), ("table", getattr(acq.table, "stop", None))):
-        if stop is None:
-            continue
-        try:
-            stop()
-        except Exception as exc:  # stopping must go on for the other device
-            log.warning("stopping the %s after an abort: %s", name, exc)
+    # Other procedure errors keep their own message (they say what went wrong).
+    return stop_on_failure(acq, abort, (ProcedureAborted,))
 
 
 def wait_until_pairing(
@@ -766,8 +845,6 @@ def calibrate_table(
     confirmed), :class:`ProcedureError` when the configuration lacks a table or the sensor
     calibration, :class:`ProcedureAborted` when the run stopped part way.
     """
-    from .acquire import Acquisition
-
     opts = options or TableOptions()
     require_motion(cfg, confirmed)
     if not cfg.table_enabled:
@@ -775,28 +852,15 @@ def calibrate_table(
     calib = load_sensor_calibration(cfg)
     s2f = np.asarray(calib.transform, dtype=np.float64)
     t_start = time.monotonic()
-    report = progress or (lambda done, total, text: None)
+    report = progress or no_progress
+    report(0, len(opts.plan(0.0)) + 2, "connecting, waiting for paired profiles")
 
-    with acquisition or Acquisition(procedure_config(cfg)) as acq:
-        total = len(opts.plan(0.0)) + 2
-        report(0, total, "connecting, waiting for paired profiles")
-        wait_until_pairing(acq)
+    with procedure_acquisition(cfg, acquisition) as acq:
         with guarded_motion(acq, "table calibration"):
-            scanner = BallScanner(
-                acq,
-                s2f,
-                radius_m=opts.ball_radius_m,
-                standoff_m=opts.standoff_m,
-                travel_speed_m_s=opts.travel_speed_m_s,
-            )
+            scanner, guess = ball_scanner(acq, s2f, opts)
             theta0 = float(acq.table.angle())
             plan = opts.plan(theta0)
             total = len(plan) + 1
-            guess = (
-                np.asarray(opts.ball_guess_m, dtype=np.float64)
-                if opts.ball_guess_m is not None
-                else scanner.ball_in_front()
-            )
             centres: list[FloatArray] = []
             angles: list[float] = []
             found: list[BallMeasurement] = []

@@ -134,6 +134,7 @@ def _run(
 
     from wristscan.drivers.base import DriverError
 
+    from .calib_table import ProcedureError
     from .config import Config
     from .scanjob import (
         MergeOptions,
@@ -174,6 +175,8 @@ def _run(
         fail(str(exc), EXIT_FAILED)
     except ScanError as exc:
         fail(str(exc), EXIT_USAGE if "calibration" in str(exc) else EXIT_FAILED)
+    except ProcedureError as exc:  # the shared acquisition steps (no paired profiles, ...)
+        fail(str(exc), EXIT_FAILED)
     except DriverError as exc:
         fail(f"device error: {exc}", EXIT_FAILED)
     typer.echo("")

@@ -35,6 +35,7 @@ from typing import Annotated, Any, Literal, Union, get_args, get_origin
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import (
+    AfterValidator,
     BaseModel,
     BeforeValidator,
     ConfigDict,
@@ -148,6 +149,25 @@ def _check_host(value: str) -> str:
     return value
 
 
+def _check_optional_host(value: str | None) -> str | None:
+    return None if value is None else _check_host(value)
+
+
+def _check_ur_model(v: str) -> str:
+    if v not in kinematics.UR_MODELS:
+        close = difflib.get_close_matches(v, list(kinematics.UR_MODELS), n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise ValueError(f"unknown UR model {v!r}{hint}; known: {', '.join(kinematics.UR_MODELS)}")
+    return v
+
+
+Host = Annotated[Str, AfterValidator(_check_host)]
+"""An IP address or a host name."""
+OptionalHost = Annotated[Str | None, AfterValidator(_check_optional_host)]
+URModelName = Annotated[Str, AfterValidator(_check_ur_model)]
+"""A key of :data:`wristscan.calib.kinematics.UR_MODELS`."""
+
+
 def _cross(field: str, message: str) -> PydanticCustomError:
     """An error about a field found by a check across fields; ``field`` is relative to the model
     that raises it (the formatter appends it to the error location)."""
@@ -197,9 +217,9 @@ class CellConfig(_Model):
 class RobotConfig(_Model):
     driver: Str = "ur-rtde"
     """Robot driver name from the registry (built-in or a ``wristscan.robots`` entry point)."""
-    host: Str
+    host: Host
     """Controller address."""
-    model: Str
+    model: URModelName
     """UR model name for the nominal kinematics (``UR5e``, ``UR10e``, ...)."""
     frequency_hz: Annotated[Float, Field(gt=0, le=500)] | None = None
     """RTDE output rate; None: the controller's maximum (500 Hz e-Series, 125 Hz CB3)."""
@@ -220,20 +240,10 @@ class RobotConfig(_Model):
     options: dict[str, Any] = Field(default_factory=dict)
     """Extra settings for a plug-in driver (not checked here)."""
 
-    @field_validator("host")
-    @classmethod
-    def _host(cls, v: str) -> str:
-        return _check_host(v)
-
     @field_validator("driver")
     @classmethod
     def _driver(cls, v: str) -> str:
         return _check_driver("robots", v)
-
-    @field_validator("model")
-    @classmethod
-    def _model(cls, v: str) -> str:
-        return _check_ur_model(v)
 
     @model_validator(mode="after")
     def _workspace(self) -> RobotConfig:
@@ -244,14 +254,6 @@ class RobotConfig(_Model):
                 f"must be above workspace_min_m on every axis (min {list(lo)}, max {list(hi)})",
             )
         return self
-
-
-def _check_ur_model(v: str) -> str:
-    if v not in kinematics.UR_MODELS:
-        close = difflib.get_close_matches(v, list(kinematics.UR_MODELS), n=1)
-        hint = f" (did you mean {close[0]!r}?)" if close else ""
-        raise ValueError(f"unknown UR model {v!r}{hint}; known: {', '.join(kinematics.UR_MODELS)}")
-    return v
 
 
 def _check_driver(kind: registry.Kind, name: str) -> str:
@@ -267,30 +269,31 @@ def _check_driver(kind: registry.Kind, name: str) -> str:
 # [sensor] and [sensor.options]
 
 
-class Lpf1UdpOptions(_Model):
-    bind_host: Str = "0.0.0.0"
-    """Local address to receive datagrams on."""
-    port: Port = 50002
-    source_host: Str | None = None
-    """Accept datagrams from this address only (None: any)."""
-    recv_buffer_bytes: Annotated[Int, Field(ge=65536, le=1 << 30)] = 8 << 20
+RecvBufferBytes = Annotated[Int, Field(ge=65536, le=1 << 30)]
 
-    @field_validator("bind_host", "source_host")
-    @classmethod
-    def _hosts(cls, v: str | None) -> str | None:
-        return None if v is None else _check_host(v)
+
+class _UdpReceiverOptions(_Model):
+    """What the sensors streaming to the host over UDP share. Each names, after ``port``, the
+    only sender it accepts (an ``OptionalHost``), then ``recv_buffer_bytes`` (the fields are
+    declared there to keep the order of the driver's arguments and of the error messages)."""
+
+    bind_host: Host = "0.0.0.0"
+    """Local address to receive datagrams on."""
+    port: Port
+
+
+class Lpf1UdpOptions(_UdpReceiverOptions):
+    port: Port = 50002
+    source_host: OptionalHost = None
+    """Accept datagrams from this address only (None: any)."""
+    recv_buffer_bytes: RecvBufferBytes = 8 << 20
 
 
 class Lpf1TcpOptions(_Model):
-    host: Str
+    host: Host
     """The sensor (or bridge) to connect to."""
     port: Port
     connect_timeout_s: Annotated[Float, Field(gt=0, le=60)] = 2.0
-
-    @field_validator("host")
-    @classmethod
-    def _host(cls, v: str) -> str:
-        return _check_host(v)
 
 
 class Lpf1SerialOptions(_Model):
@@ -299,18 +302,12 @@ class Lpf1SerialOptions(_Model):
     baudrate: Baudrate = 921600
 
 
-class Rf627Options(_Model):
-    bind_host: Str = "0.0.0.0"
+class Rf627Options(_UdpReceiverOptions):
     port: Port = 50001
     """The host port the sensor streams profiles to."""
-    sensor_host: Str | None = None
+    sensor_host: OptionalHost = None
     """The sensor's address: datagrams from others are ignored (None: any)."""
-    recv_buffer_bytes: Annotated[Int, Field(ge=65536, le=1 << 30)] = 8 << 20
-
-    @field_validator("bind_host", "sensor_host")
-    @classmethod
-    def _hosts(cls, v: str | None) -> str | None:
-        return None if v is None else _check_host(v)
+    recv_buffer_bytes: RecvBufferBytes = 8 << 20
 
 
 class ScipOptions(_Model):
@@ -439,7 +436,7 @@ class TableConfig(_Model):
     enabled: Bool = True
     driver: Str = "modbus"
     transport: Literal["tcp", "rtu"] = "tcp"
-    host: Str | None = None
+    host: OptionalHost = None
     """Modbus TCP server (``transport = "tcp"``)."""
     port: Port = 502
     serial_port: Str | None = None
@@ -474,11 +471,6 @@ class TableConfig(_Model):
     @classmethod
     def _driver(cls, v: str) -> str:
         return _check_driver("tables", v)
-
-    @field_validator("host")
-    @classmethod
-    def _host(cls, v: str | None) -> str | None:
-        return None if v is None else _check_host(v)
 
     @model_validator(mode="after")
     def _consistent(self) -> TableConfig:
@@ -621,9 +613,9 @@ class CalibrationConfig(_Model):
 
 
 class SimControllerConfig(_Model):
-    host: Str = "127.0.0.2"
+    host: Host = "127.0.0.2"
     """Loopback address the simulated controller listens on (ports 29999, 30003, 30004)."""
-    model: Str = "UR5e"
+    model: URModelName = "UR5e"
     version: Annotated[
         tuple[Int, Int, Int, Int],
         BeforeValidator(_fixed_length(4, "[major, minor, bugfix, build]")),
@@ -634,16 +626,6 @@ class SimControllerConfig(_Model):
     initial_q_rad: Joints6 | None = None
     initial_q_deg: Joints6 | None = None
     """Start joint positions: give them in radians or degrees (not both)."""
-
-    @field_validator("host")
-    @classmethod
-    def _host(cls, v: str) -> str:
-        return _check_host(v)
-
-    @field_validator("model")
-    @classmethod
-    def _model(cls, v: str) -> str:
-        return _check_ur_model(v)
 
     @field_validator("version")
     @classmethod
@@ -704,7 +686,7 @@ class SimSensorConfig(_Model):
 class SimTableConfig(_Model):
     enabled: Bool = True
     transport: Literal["tcp", "rtu"] = "tcp"
-    host: Str = "127.0.0.1"
+    host: Host = "127.0.0.1"
     port: Annotated[Int, Field(ge=0, le=65535)] = 5020
     """Modbus TCP port (0: any free port)."""
     device_id: Annotated[Int, Field(ge=0, le=247)] = 1
@@ -713,11 +695,6 @@ class SimTableConfig(_Model):
     max_speed_deg_s: Annotated[Float, Field(gt=0, le=3600)] = 90.0
     accel_deg_s2: Annotated[Float, Field(gt=0, le=36000)] = 180.0
     initial_angle_rad: Float = 0.0
-
-    @field_validator("host")
-    @classmethod
-    def _host(cls, v: str) -> str:
-        return _check_host(v)
 
 
 class SimSceneConfig(_Model):

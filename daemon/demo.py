@@ -25,10 +25,9 @@ from numpy.typing import NDArray
 
 from wristscan.calib import kinematics, se3
 
-from .calibfile import Calibration, Residuals, RobotIdentity, SensorIdentity, write_calibration
 from .client import CloudClient
 from .config import Config, load_config
-from .simcell import dump_toml, free_sim_config, start_cell
+from .simcell import dump_toml, free_sim_config, start_cell, write_truth_calibrations
 
 __all__ = ["DemoResult", "run_demo", "voxel_downsample"]
 
@@ -93,34 +92,6 @@ class _Collector:
         self._thread.join(5)
 
 
-def _write_truth_calibrations(cfg: Config, truth: dict[str, Any], folder: Path) -> None:
-    robot = RobotIdentity(cfg.robot.model)
-    sensor = SensorIdentity(cfg.sensor.driver, str(cfg.sensor.sensor_id))
-    write_calibration(
-        folder / "sensor2flange.json",
-        Calibration(
-            kind="sensor2flange",
-            transform=np.array(truth["sensor2flange"]),
-            robot=robot,
-            sensor=sensor,
-            method="simulation ground truth (demo)",
-            residuals=Residuals(rms_m=0.0),
-        ),
-    )
-    write_calibration(
-        folder / "table.json",
-        Calibration(
-            kind="table",
-            transform=se3.invert(np.array(truth["table_zero2base"])),
-            robot=robot,
-            sensor=sensor,
-            method="simulation ground truth (demo)",
-            residuals=Residuals(rms_m=0.0),
-            parameters={"encoder_offset_rad": 0.0},
-        ),
-    )
-
-
 def run_demo(
     out: Path,
     voxel_m: float = 0.0005,
@@ -146,7 +117,7 @@ def run_demo(
     daemon: subprocess.Popen[bytes] | None = None
     try:
         truth = cell.truth()
-        _write_truth_calibrations(cfg, truth, folder)
+        write_truth_calibrations(cfg, truth, method="simulation ground truth (demo)")
         progress("starting the daemon: wristscan run --config " + str(cfg_path))
         log_file = open(folder / "daemon.log", "wb")
         daemon = subprocess.Popen(

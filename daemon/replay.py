@@ -41,7 +41,7 @@ import math
 import socket
 import time
 import tomllib
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -51,7 +51,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from wristscan.calib import kinematics, se3
 
-from .calib_table import ProcedureError, write_json_atomic
+from .calib_table import ProcedureError, Progress, no_progress, write_json_atomic
 from .calibfile import ur_pose_text
 from .config import Config
 
@@ -79,7 +79,6 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
-Progress = Callable[[int, int, str], None]
 
 SCRIPT_PORT = 30003
 DASHBOARD_PORT = 29999
@@ -526,26 +525,19 @@ def run_program(
     """Run the plan's program on the robot of ``cfg`` (motion must be enabled; the caller has
     confirmed): send it, wait until it has run, and return a one-line outcome. Stops the
     program and raises :class:`ReplayError` on a protective stop, a timeout or Ctrl-C."""
-    from wristscan.drivers.base import DriverError, DriverTimeout
+    from wristscan.drivers.base import DriverError
 
+    from .acquire import open_retrying
     from .devices import make_devices
 
     if not cfg.robot.motion_enabled:
         raise ReplayError(f"{cfg.source}: [robot] motion_enabled is false: the replay moves it")
-    report = progress or (lambda done, total, text: None)
+    report = progress or no_progress
     host = cfg.robot.host
-    robot: Any = None
-    for attempt in range(3):
-        robot = make_devices(cfg).robot
-        try:
-            robot.open()
-            break
-        except DriverTimeout as exc:
-            if attempt == 2:
-                raise ReplayError(f"cannot connect to the robot: {exc}") from None
-            log.warning("%s; trying again", exc)  # a controller busy starting up
-        except DriverError as exc:
-            raise ReplayError(f"cannot connect to the robot: {exc}") from None
+    try:
+        robot: Any = open_retrying(lambda: make_devices(cfg).robot, attempts=3)
+    except DriverError as exc:
+        raise ReplayError(f"cannot connect to the robot: {exc}") from None
     text = plan.script()
     t0 = time.monotonic()
     try:

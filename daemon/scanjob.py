@@ -36,13 +36,13 @@ pass carries most of the disagreement.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import json
 import logging
 import math
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -59,11 +59,12 @@ from .calib_table import (
     MotionNotConfirmed,
     ProcedureAborted,
     ProcedureError,
-    procedure_config,
+    Progress,
+    calibration_in_force,
+    no_progress,
+    procedure_acquisition,
     require_motion,
-    wait_until_pairing,
 )
-from .calibfile import CalibrationFileError, RobotIdentity, SensorIdentity, read_calibration
 from .config import Config
 from .scanplan import (
     CellGeometry,
@@ -104,8 +105,6 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
-Progress = Callable[[int, int, str], None]
-"""Progress callback: ``(steps done, steps in total, what happens now)``."""
 
 _TABLE_STILL_RAD = 2e-4
 """The table angle before and after a pass may differ by this much (encoder noise)."""
@@ -157,22 +156,12 @@ def load_scan_calibration(cfg: Config, plan: ScanPlan) -> ScanCalibration:
     part-frame plan or one that turns the table). Raises :class:`ScanError` saying what is
     missing."""
     c = cfg.calibration
-    sid = cfg.sensor.sensor_id
-    robot_id = RobotIdentity(cfg.robot.model) if c.check_identity else None
-    sensor_id = (
-        SensorIdentity(cfg.sensor.driver, None if sid is None else str(sid))
-        if c.check_identity
-        else None
+    s2f = calibration_in_force(
+        cfg,
+        "sensor2flange",
+        "a scan needs the sensor calibration (wristscan calibrate sensor writes it)",
+        ScanError,
     )
-    if c.file is None:
-        raise ScanError(
-            f"{cfg.source}: [calibration] file is not set: a scan needs the sensor calibration "
-            "(wristscan calibrate sensor writes it)"
-        )
-    try:
-        s2f = read_calibration(c.file, robot_id, sensor_id, kind="sensor2flange")
-    except CalibrationFileError as exc:
-        raise ScanError(f"sensor calibration: {exc}") from None
     sources = {"sensor2flange": str(c.file)}
     needs_table = plan.frame == "part" or any(p.table_deg is not None for p in plan.passes)
     if not needs_table:
@@ -182,15 +171,12 @@ def load_scan_calibration(cfg: Config, plan: ScanPlan) -> ScanCalibration:
             f"{cfg.source}: the plan turns the table or is in the part frame, but the "
             "configuration has no enabled [table]"
         )
-    if c.table_file is None:
-        raise ScanError(
-            f"{cfg.source}: [calibration] table_file is not set: a part-frame plan needs the "
-            "table calibration (wristscan calibrate table writes it)"
-        )
-    try:
-        tcal = read_calibration(c.table_file, robot_id, None, kind="table")
-    except CalibrationFileError as exc:
-        raise ScanError(f"table calibration: {exc}") from None
+    tcal = calibration_in_force(
+        cfg,
+        "table",
+        "a part-frame plan needs the table calibration (wristscan calibrate table writes it)",
+        ScanError,
+    )
     sources["table"] = str(c.table_file)
     return ScanCalibration(
         np.asarray(s2f.transform, dtype=np.float64),
@@ -327,19 +313,16 @@ def run_scan(
     :class:`ScanAborted` when the scan stopped part way. Writes the outputs into ``out_dir``
     when given.
     """
-    from .acquire import Acquisition
-
     require_motion(cfg, confirmed)
     opts = options or MergeOptions()
     cal = load_scan_calibration(cfg, plan)
-    report = progress or (lambda done, total, text: None)
+    report = progress or no_progress
     t0 = time.monotonic()
     n = len(plan.passes)
     total = n + 2
     recorded: list[RecordedPass] = []
-    with Acquisition(procedure_config(cfg)) as acq:
-        report(0, total, "connecting, waiting for paired profiles")
-        wait_until_pairing(acq)
+    report(0, total, "connecting, waiting for paired profiles")
+    with procedure_acquisition(cfg) as acq:
         robot = acq.robot
         state = robot.latest_state()
         if state is None:
@@ -454,31 +437,15 @@ def _record_pass(acq: Acquisition, geom: CellGeometry, rp: ResolvedPass) -> Reco
     return RecordedPass(rp.index, rp.label, rp.kind, sweep, angle, time.monotonic() - t0)
 
 
-@contextlib.contextmanager
-def _guarded(acq: Acquisition) -> Iterator[None]:
+def _guarded(acq: Acquisition) -> AbstractContextManager[None]:
     """Stop the robot and the table when anything goes wrong while moving; re-raise as
     :class:`ScanAborted` (driver errors, failed checks of a pass, Ctrl-C)."""
-    from wristscan.drivers.base import DriverError
+    from .acquire import stop_on_failure
 
-    try:
-        yield
-    except (DriverError, KeyboardInterrupt, ScanError) as exc:
-        _stop_all(acq)
-        reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else str(exc)
-        raise ScanAborted(f"scan aborted: {reason}; the robot and the table were stopped") from exc
-    except BaseException:
-        _stop_all(acq)
-        raise
+    def abort(reason: str) -> ScanAborted:
+        return ScanAborted(f"scan aborted: {reason}; the robot and the table were stopped")
 
-
-def _stop_all(acq: Acquisition) -> None:
-    for name, stop in (("robot", acq.robot.stop), ("table", getattr(acq.table, "stop", None))):
-        if stop is None:
-            continue
-        try:
-            stop()
-        except Exception as exc:  # stopping must go on for the other device
-            log.warning("stopping the %s after an abort: %s", name, exc)
+    return stop_on_failure(acq, abort, (ScanError,))
 
 
 # --------------------------------------------------------------------------------------------

@@ -9,8 +9,11 @@ from __future__ import annotations
 import dataclasses
 import socket
 import tomllib
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from wristscan.drivers.sim.cell import CellSpec, SimulatedCell
 from wristscan.drivers.sim.scene import demo_scene
@@ -20,7 +23,7 @@ from wristscan.drivers.sim.ur_controller import ControllerConfig
 
 from .config import Config, SimConfig
 
-__all__ = ["cell_spec", "dump_toml", "free_sim_config", "start_cell"]
+__all__ = ["cell_spec", "dump_toml", "free_sim_config", "start_cell", "write_truth_calibrations"]
 
 
 def _sensor_endpoint(cfg: Config) -> dict[str, Any]:
@@ -120,6 +123,48 @@ def start_cell(
     if table_port is not None and spec.table is not None:
         spec = dataclasses.replace(spec, table=dataclasses.replace(spec.table, port=table_port))
     return SimulatedCell(spec).start()
+
+
+def write_truth_calibrations(
+    cfg: Config,
+    truth: Mapping[str, Any] | None = None,
+    *,
+    method: str = "simulation ground truth",
+) -> list[Path]:
+    """Write the simulated cell's true calibrations as the calibrations in force of ``cfg``
+    (with its robot and sensor identities), so that the procedures run with perfect ones: the
+    sensor2flange to ``[calibration] file`` and, when ``table_file`` is set and the truth has a
+    table, base2table (encoder offset 0) to ``table_file``.
+
+    ``truth``: :meth:`SimulatedCell.truth` of the running cell, or any mapping with
+    ``sensor2flange`` and optionally ``table_zero2base`` (4x4); None: the ``[sim.truth]`` of
+    ``cfg`` (no cell needed). Returns the files written; ValueError without ``[calibration]
+    file``."""
+    from wristscan.calib import se3
+
+    from .calib_table import identities
+    from .calibfile import Calibration, Residuals, write_calibration
+
+    c = cfg.calibration
+    if c.file is None:
+        raise ValueError(f"{cfg.source}: [calibration] file is not set")
+    if truth is None:
+        t = (cfg.sim or SimConfig()).truth
+        truth = {"sensor2flange": t.sensor2flange(), "table_zero2base": t.table_zero2base()}
+    robot, sensor = identities(cfg)
+    common: dict[str, Any] = {
+        "robot": robot,
+        "sensor": sensor,
+        "method": method,
+        "residuals": Residuals(0.0),
+    }
+    s2f = np.asarray(truth["sensor2flange"], dtype=np.float64)
+    paths = [write_calibration(c.file, Calibration("sensor2flange", s2f, **common))]
+    if c.table_file is not None and truth.get("table_zero2base") is not None:
+        base2table = se3.invert(np.asarray(truth["table_zero2base"], dtype=np.float64))
+        table = Calibration("table", base2table, parameters={"encoder_offset_rad": 0.0}, **common)
+        paths.append(write_calibration(c.table_file, table))
+    return paths
 
 
 # --------------------------------------------------------------------------------------------

@@ -40,7 +40,6 @@ import json
 import logging
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -52,13 +51,14 @@ from wristscan.calib import se3
 from wristscan.calib.edge import EdgeDetection, EdgeModel, EdgePath, detect_edge, smooth_path
 
 from .calib_table import (
+    Progress,
     load_sensor_calibration,
+    no_progress,
     require_motion,
-    wait_until_pairing,
     write_json_atomic,
 )
 from .config import Config
-from .teach_plane import Mover, TeachError, guarded, open_acquisition, record_still
+from .teach_plane import Mover, TeachError, guarded, record_still, teach_acquisition
 
 if TYPE_CHECKING:
     from .acquire import Acquisition, Sweep
@@ -81,7 +81,6 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
-Progress = Callable[[int, int, str], None]
 
 PATH_FORMAT = "wristscan-edge-path"
 PATH_VERSION = 1
@@ -287,8 +286,7 @@ def model_toml(model: EdgeModel) -> str:
 def teach_edge_model(cfg: Config, kind: str, dwell_s: float = 0.2) -> EdgeModel:
     """Teach the edge model from the example edge under the sensor (nothing moves; the model
     lives in the laser plane, so no calibration is needed)."""
-    with open_acquisition(cfg) as acq:
-        wait_until_pairing(acq)
+    with teach_acquisition(cfg) as acq:
         sweep = record_still(acq, dwell_s, 0.0)
     return model_from_sweep(sweep, kind)
 
@@ -460,12 +458,11 @@ def learn_edge(
     require_motion(cfg, confirmed)
     calib = load_sensor_calibration(cfg)
     s2f = np.asarray(calib.transform, dtype=np.float64)
-    report = progress or (lambda done, total, text: None)
+    report = progress or no_progress
     total = max(1, math.ceil(opts.length_m / opts.step_m))
     t0 = time.monotonic()
     report(0, total, "connecting, waiting for paired profiles")
-    with open_acquisition(cfg) as acq:
-        wait_until_pairing(acq)
+    with teach_acquisition(cfg) as acq:
         with guarded(acq, "edge learning"):
             follower = _Follower(acq, s2f, model, opts)
             follower.start()

@@ -39,12 +39,11 @@ box; any failure while moving stops the robot and raises :class:`TeachAborted`.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import math
 import time
-from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -58,10 +57,11 @@ from wristscan.calib.plane import PlaneFit, fit_hyperplane, fit_plane, plane_fra
 from .calib_table import (
     ProcedureAborted,
     ProcedureError,
+    Progress,
     load_sensor_calibration,
-    procedure_config,
+    no_progress,
+    procedure_acquisition,
     require_motion,
-    wait_until_pairing,
     write_json_atomic,
 )
 from .calibfile import ur_pose_text
@@ -92,7 +92,6 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
-Progress = Callable[[int, int, str], None]
 
 FRAME_FORMAT = "wristscan-plane-frame"
 FRAME_VERSION = 1
@@ -167,27 +166,13 @@ class Mover:
         self.robot.move_l(self.tcp_pose(sensor2base), speed, self.accel)
 
 
-def open_acquisition(cfg: Config, attempts: int = 3) -> Acquisition:
-    """An open :class:`Acquisition` on the devices of ``cfg`` (points in the base frame). A
-    device that does not answer in time is tried again (a controller busy starting up); the
-    last failure becomes a :class:`TeachError`."""
-    from wristscan.drivers.base import DriverError, DriverTimeout
-
-    from .acquire import Acquisition
-
-    for attempt in range(attempts):
-        acq = Acquisition(procedure_config(cfg))
-        try:
-            return acq.open()
-        except DriverTimeout as exc:
-            acq.close()
-            if attempt + 1 == attempts:
-                raise TeachError(f"cannot open the devices: {exc}") from None
-            log.warning("%s; trying again", exc)
-        except DriverError as exc:
-            acq.close()
-            raise TeachError(f"cannot open the devices: {exc}") from None
-    raise AssertionError("unreachable")
+def teach_acquisition(
+    cfg: Config, acquisition: Acquisition | None = None
+) -> AbstractContextManager[Acquisition]:
+    """:func:`~.calib_table.procedure_acquisition` for the teaching procedures: a device that
+    does not answer in time is tried again (a controller busy starting up); a device failure
+    becomes a :class:`TeachError`."""
+    return procedure_acquisition(cfg, acquisition, attempts=3, open_error=TeachError)
 
 
 def record_still(acq: Acquisition, dwell_s: float, settle_s: float = 0.05) -> Sweep:
@@ -204,28 +189,16 @@ def record_still(acq: Acquisition, dwell_s: float, settle_s: float = 0.05) -> Sw
     return sweep
 
 
-@contextlib.contextmanager
-def guarded(acq: Acquisition, what: str) -> Iterator[None]:
+def guarded(acq: Acquisition, what: str) -> AbstractContextManager[None]:
     """Stop the robot when anything goes wrong inside the block; re-raise driver errors and
     Ctrl-C as :class:`TeachAborted`."""
-    from wristscan.drivers.base import DriverError
+    from .acquire import stop_on_failure
 
-    try:
-        yield
-    except (DriverError, KeyboardInterrupt, ValueError) as exc:
-        _stop(acq)
-        reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else str(exc)
-        raise TeachAborted(f"{what} aborted: {reason}; the robot was stopped") from exc
-    except BaseException:
-        _stop(acq)
-        raise
+    def abort(reason: str) -> TeachAborted:
+        return TeachAborted(f"{what} aborted: {reason}; the robot was stopped")
 
-
-def _stop(acq: Acquisition) -> None:
-    try:
-        acq.robot.stop()
-    except Exception as exc:  # reporting the original error matters more
-        log.warning("stopping the robot after an abort: %s", exc)
+    # A failed fit (ValueError) while moving aborts too; the table is not used here.
+    return stop_on_failure(acq, abort, (ValueError,), table=False)
 
 
 # --------------------------------------------------------------------------------------------
@@ -351,15 +324,13 @@ def measure(
 ) -> SurfaceMeasurement:
     """Measure the surface under the sensor on the devices of ``cfg``. With ``sweep_m`` > 0 the
     sensor moves ``+-sweep_m / 2`` along its X axis and back (needs motion enabled and
-    ``confirmed``); otherwise nothing moves."""
+    ``confirmed``); otherwise nothing moves. ``acquisition``: an already built one (tests),
+    opened if need be and closed at the end, as by the other procedures."""
     if sweep_m > 0:
         require_motion(cfg, confirmed)
     calib = load_sensor_calibration(cfg)
     s2f = np.asarray(calib.transform, dtype=np.float64)
-    own = acquisition is None
-    acq = acquisition if acquisition is not None else open_acquisition(cfg)
-    try:
-        wait_until_pairing(acq)
+    with teach_acquisition(cfg, acquisition) as acq:
         still = record_still(acq, dwell_s, settle_s=0.0)
         if sweep_m <= 0:
             return measure_surface(still, s2f)
@@ -376,9 +347,6 @@ def measure(
             sweep = rec.result()
             mover.move_sensor(S)
         return measure_surface(sweep, s2f, swept=True)
-    finally:
-        if own:
-            acq.close()
 
 
 # --------------------------------------------------------------------------------------------
@@ -589,13 +557,12 @@ def teach_plane(
     require_motion(cfg, confirmed)
     calib = load_sensor_calibration(cfg)
     s2f = np.asarray(calib.transform, dtype=np.float64)
-    report = progress or (lambda done, total, text: None)
+    report = progress or no_progress
     layout = opts.layout()
     total = len(layout) + 1
     t0 = time.monotonic()
     report(0, total, "connecting, waiting for paired profiles")
-    with open_acquisition(cfg) as acq:
-        wait_until_pairing(acq)
+    with teach_acquisition(cfg) as acq:
         with guarded(acq, "plane teaching"):
             mover = Mover(acq, s2f, opts.speed_m_s)
             spots: list[Spot] = []
@@ -677,20 +644,9 @@ def simulated_cell_spec(
 def write_truth_calibration(cfg: Config, spec: CellSpec) -> Path:
     """Write the simulated cell's true sensor2flange as the calibration file of ``cfg`` (as
     ``wristscan demo`` does), so that a procedure runs with a perfect calibration."""
-    from .calib_table import identities
-    from .calibfile import Calibration, Residuals, write_calibration
+    from .simcell import write_truth_calibrations
 
     if cfg.calibration.file is None:
         raise TeachError(f"{cfg.source}: [calibration] file is not set")
-    robot, sensor = identities(cfg)
-    return write_calibration(
-        cfg.calibration.file,
-        Calibration(
-            kind="sensor2flange",
-            transform=spec.sensor.sensor2flange_matrix(),
-            robot=robot,
-            sensor=sensor,
-            method="ground truth of the simulated cell",
-            residuals=Residuals(0.0),
-        ),
-    )
+    truth = {"sensor2flange": spec.sensor.sensor2flange_matrix()}
+    return write_truth_calibrations(cfg, truth, method="ground truth of the simulated cell")[0]

@@ -16,13 +16,6 @@ import pytest
 from typer.testing import CliRunner
 
 from wristscan.calib import kinematics, se3
-from wristscan.daemon.calibfile import (
-    Calibration,
-    Residuals,
-    RobotIdentity,
-    SensorIdentity,
-    write_calibration,
-)
 from wristscan.daemon.cli import app
 from wristscan.daemon.config import Config, load_config
 from wristscan.daemon.scanjob import (
@@ -50,7 +43,7 @@ from wristscan.daemon.scanplan import (
     plan_to_toml,
     resolve_plan,
 )
-from wristscan.daemon.simcell import dump_toml, free_sim_config
+from wristscan.daemon.simcell import dump_toml, free_sim_config, write_truth_calibrations
 
 Q_HOME = np.radians([0.0, -90.0, 90.0, -90.0, -90.0, 0.0])
 S2F_POSE = [0.060, 0.010, 0.200, 0.020, -0.015, 0.010]
@@ -434,33 +427,6 @@ def test_surface_needs_the_extra_or_builds_a_mesh(tmp_path: Path) -> None:
 # CLI without a cell: plan authoring and a dry run from given joints
 
 
-def _write_truth_calibrations(folder: Path) -> None:
-    robot, sensor = RobotIdentity("UR5e"), SensorIdentity("lpf1-udp", "1")
-    write_calibration(
-        folder / "s2f.json",
-        Calibration(
-            kind="sensor2flange",
-            transform=se3.pose_to_matrix(np.array(S2F_POSE)),
-            robot=robot,
-            sensor=sensor,
-            method="simulation ground truth",
-            residuals=Residuals(0.0),
-        ),
-    )
-    write_calibration(
-        folder / "table.json",
-        Calibration(
-            kind="table",
-            transform=se3.invert(TABLE_ZERO2BASE),
-            robot=robot,
-            sensor=sensor,
-            method="simulation ground truth",
-            residuals=Residuals(0.0),
-            parameters={"encoder_offset_rad": 0.0},
-        ),
-    )
-
-
 def _sim_config(folder: Path, **changes: dict[str, Any]) -> tuple[Path, Config]:
     doc = free_sim_config(
         {
@@ -472,8 +438,13 @@ def _sim_config(folder: Path, **changes: dict[str, Any]) -> tuple[Path, Config]:
     )
     path = folder / "cell.toml"
     path.write_text(dump_toml(doc))
-    _write_truth_calibrations(folder)
-    return path, load_config(path)
+    cfg = load_config(path)
+    truth = {
+        "sensor2flange": se3.pose_to_matrix(np.array(S2F_POSE)),
+        "table_zero2base": TABLE_ZERO2BASE,
+    }
+    write_truth_calibrations(cfg, truth)
+    return path, cfg
 
 
 def test_cli_plan_then_dry_run(tmp_path: Path) -> None:
