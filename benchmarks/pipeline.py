@@ -902,16 +902,22 @@ def run(
     profile_out: str | None = None,
     workdir: str | None = None,
     nice: int | None = None,
+    cell_nice: int | None = None,
 ) -> int:
     """Measure every rate, print the figures beside their targets; 1 if a target is missed.
     ``nice``: run the daemon's session, the subscriber's and this one (the simulated cell) at
     this nice value (negative needs root; restored at the end): what the pipeline does when it
     gets the CPU it asks for on a busy machine, as a production unit can arrange with
-    ``Nice=``."""
-    if nice is not None:
+    ``Nice=``. ``cell_nice``: this session (the simulated cell, a stand-in for the sensor's and
+    the controller's own processors) at that value instead, the daemon and the subscriber at
+    ``nice`` (0 if None)."""
+    own_nice = cell_nice if cell_nice is not None else nice
+    if cell_nice is not None and nice is None:
+        nice = 0
+    if own_nice is not None:
         own = Path("/proc/self/autogroup")
         saved = int(own.read_text().split()[-1]) if own.exists() else None
-        _set_session_nice(os.getpid(), nice)
+        _set_session_nice(os.getpid(), own_nice)
         try:
             return _run(
                 rates_hz,
@@ -1067,6 +1073,11 @@ def _run(
         ]
     figures.append(Figure("host: load average (1 min)", os.getloadavg()[0], "", "-", None))
     figures.append(Figure("nice value of the daemon", nice or 0, "", "-", None))
+    figures.append(
+        Figure(
+            "nice value of the simulated cell", os.getpriority(os.PRIO_PROCESS, 0), "", "-", None
+        )
+    )
     if json_out:
         Path(json_out).with_suffix(".details.json").write_text(json.dumps(details, indent=2))
     return report(
@@ -1101,6 +1112,14 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="run the daemon, subscriber and cell at this nice value (root)",
     )
+    ap.add_argument(
+        "--cell-nice",
+        type=int,
+        default=-10 if os.geteuid() == 0 else None,
+        help="run the simulated cell at this nice value (root; default -10 as root): it stands "
+        "in for the sensor's and the controller's own processors, which do not take CPU from "
+        "the daemon on a real cell",
+    )
     ns = ap.parse_args(args)
     rates = tuple(float(x) for x in ns.rates.split(","))
     return run(
@@ -1113,6 +1132,7 @@ def main(argv: list[str] | None = None) -> int:
         ns.profile,
         ns.workdir,
         ns.nice,
+        ns.cell_nice,
     )
 
 

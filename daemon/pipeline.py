@@ -64,6 +64,11 @@ class PipelineSettings:
     this tick's batch instead of one whole period later."""
     publish_intensity: bool = False
     publish_profile_index: bool = False
+    inline_sensor: bool | None = None
+    """Read the sensor in the worker at each tick instead of in a reader thread (None: when the
+    driver stamps receipt in the kernel, ``kernel_stamps``; then reading late loses no timing,
+    the socket buffer holds the tick's datagrams, and a thread woken per profile, competing for
+    the GIL with the worker, is saved)."""
     gil_switch_interval_s: float | None = 0.0005
     """Python's thread switch interval while the pipeline runs, for sensor drivers that stamp
     a record when their thread gets the GIL back after the receive call: with Python's default
@@ -267,6 +272,13 @@ class Pipeline:
                     self._states_arrived,
                 )
             )
+        inline = s.inline_sensor
+        if inline is None:
+            inline = bool(getattr(sensor, "kernel_stamps", False))
+        self.inline_sensor = inline
+        self.sensor_errors = 0
+        if inline:
+            self._readers.pop(0)
         self._worker = threading.Thread(target=self._work, name="pipeline-worker", daemon=True)
         self._started = False
         self._saved_switch_interval: float | None = None
@@ -385,6 +397,24 @@ class Pipeline:
             self._saved_switch_interval = None
 
     # --- worker ---------------------------------------------------------------------------------
+    def _read_sensor_inline(self) -> None:
+        """Everything the sensor driver holds now (inline mode), into the profile queue."""
+        read, sink, maxsize = self.sensor.read, self._profiles, self.settings.profile_queue
+        for _ in range(1_000_000):  # bounded: a flood cannot keep the worker here forever
+            try:
+                rec = read(timeout=0.0)
+            except DriverError as exc:
+                # The driver reconnects by itself; the next tick tries again.
+                self.sensor_errors += 1
+                log.warning("%s: %s", self.sensor.kind, exc)
+                return
+            if rec is None:
+                return
+            if len(sink) < maxsize:
+                sink.append(rec)
+            else:
+                self._drop_profile()
+
     def _drain(self, profiles_too: bool = True) -> None:
         pairer = self.pairer
         # States first: the profiles drained after them find their robot samples in place.
@@ -402,6 +432,8 @@ class Pipeline:
     def _pair(self, stopping: bool) -> list[PairedBatch]:
         """This tick's batches: pair what arrived, then wait up to ``state_wait_s`` for the
         states that received profiles still need (not while stopping)."""
+        if self.inline_sensor:
+            self._read_sensor_inline()
         self._drain()
         batches = self.pairer.poll()
         deadline = time.monotonic() + self.settings.state_wait_s
