@@ -85,6 +85,10 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+_PRECISE_NS = 1_500_000
+"""A send due sooner than this is waited for with ``time.sleep`` (microseconds) rather than the
+selector (milliseconds), so that profiles leave at their send time as a real sensor's do."""
+
 SensorKind = Literal["lpf1-udp", "lpf1-tcp", "lpf1-serial", "rf627-udp", "scip-tcp", "scip-serial"]
 KINDS: tuple[str, ...] = (
     "lpf1-udp",
@@ -1316,7 +1320,14 @@ class _Runtime:
                 wake = min(wake, now + 200_000)
             if self.down_until_ns:
                 wake = min(wake, self.down_until_ns)
-            timeout = max(wake - time.monotonic_ns(), 100_000) * 1e-9
+            now = time.monotonic_ns()
+            if self.queue and wake == self.queue[0][0] and wake - now < _PRECISE_NS:
+                # The selector's timeout has 1 ms resolution (epoll): send on time instead.
+                time.sleep(max(0, wake - now) * 1e-9)
+                for key, _ in self.sel.select(0):
+                    key.data()
+                continue
+            timeout = max(wake - now, 100_000) * 1e-9
             for key, _ in self.sel.select(timeout):
                 key.data()
 

@@ -377,6 +377,12 @@ class _Job:
         self.params: tuple[Any, ...] = ()
 
 
+_EARLY_NS = 1_000_000
+"""The clock loop wakes this long before a cycle is due and sends it at the due time: a real
+controller sends within microseconds of its cycle, and a simulator sending up to a timer
+resolution late would shift the robot stream's timing by that much."""
+
+
 class _Controller:
     """State of the simulated controller; lives in the controller process's event loop."""
 
@@ -471,7 +477,10 @@ class _Controller:
         self._history.clear()
         self._append_truth([start_ns], self._pq[None], np.zeros((1, 6)), np.zeros((1, 6)))
 
-    def run_cycle(self, k: int, publish: bool) -> None:
+    def run_cycle(
+        self, k: int, publish: bool, before_send: Callable[[], None] | None = None
+    ) -> None:
+        """Run cycle ``k``; ``before_send`` is called between computing and sending it."""
         self.cycle = k
         t_k = self.start_ns + k * self.period_ns
         self._advance(t_k + self.lookahead_ns)
@@ -480,7 +489,7 @@ class _Controller:
         self._script_step()
         self._check_watches()
         if publish:
-            self._publish(k)
+            self._publish(k, before_send)
         else:
             self.skipped_cycles += 1
 
@@ -1168,15 +1177,18 @@ class _Controller:
             v.setdefault(name, value)
         return v
 
-    def _publish(self, k: int) -> None:
+    def _publish(self, k: int, before_send: Callable[[], None] | None = None) -> None:
         if time.monotonic_ns() < self.stall_until_ns:
             return
         due = [c for c in self.rtde_conns if c.started and c.due(k)]
         if not due:
             return
         values = self.values()
-        for c in due:
-            c.send_outputs(k, values, self.defaults)
+        packets = [(c, c.outputs_for(k, values, self.defaults)) for c in due]
+        if before_send is not None:
+            before_send()
+        for c, data in packets:
+            c.send_packets(data)
 
     # ------------------------------------------------------------------ faults and queries
 
@@ -1357,17 +1369,23 @@ class _RtdeProtocol(asyncio.Protocol):
     def due(self, k: int) -> bool:
         return any(k % div == 0 for _, div in self.outputs)
 
-    def send_outputs(self, k: int, values: dict[str, Any], defaults: dict[str, Any]) -> None:
+    def outputs_for(self, k: int, values: dict[str, Any], defaults: dict[str, Any]) -> bytes:
+        """The data packages of cycle ``k`` for this client (its recipes due at ``k``)."""
+        return b"".join(
+            rtde_wire.encode(rtde_wire.DATA_PACKAGE, recipe.pack(values, defaults))
+            for recipe, div in self.outputs
+            if k % div == 0
+        )
+
+    def send_packets(self, data: bytes) -> None:
         t = self.transport
-        if t is None:
+        if t is None or not data:
             return
         if t.get_write_buffer_size() > self._drop_limit:
             log.warning("RTDE client stopped reading for about 10 s; dropping it")
             self.close()
             return
-        for recipe, div in self.outputs:
-            if k % div == 0:
-                t.write(rtde_wire.encode(rtde_wire.DATA_PACKAGE, recipe.pack(values, defaults)))
+        t.write(data)
 
 
 class _LineProtocol(asyncio.Protocol):
@@ -1487,8 +1505,10 @@ async def _serve(
             k += 1
             due = ctrl.start_ns + k * period
             now = time.monotonic_ns()
-            if due > now:
-                await asyncio.sleep((due - now) * 1e-9)
+            # asyncio's timers have 1 ms resolution (epoll): wake up to _EARLY_NS before the
+            # cycle, compute it (its state is known ahead), and send it on time (below).
+            if due - _EARLY_NS > now:
+                await asyncio.sleep((due - _EARLY_NS - now) * 1e-9)
             elif k % 8 == 0:
                 await asyncio.sleep(0)  # let I/O through while catching up
             now = time.monotonic_ns()
@@ -1500,8 +1520,14 @@ async def _serve(
             publish = late < 3 * period or now < due + period or k - last_published >= 5
             if publish:
                 last_published = k
+
+            def on_time(due: int = due) -> None:
+                wait = due - time.monotonic_ns()
+                if wait > 0:
+                    time.sleep(wait * 1e-9)
+
             try:
-                ctrl.run_cycle(k, publish)
+                ctrl.run_cycle(k, publish, on_time)
             except Exception as e:  # a bug must not freeze the controller silently
                 log.exception("controller cycle %d failed", k)
                 ctrl.enter_protective_stop(f"internal error: {e}")
