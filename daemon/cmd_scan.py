@@ -56,7 +56,7 @@ def scan(
     ),
     icp: bool = typer.Option(True, "--icp/--no-icp", help="Refine the passes with ICP."),
     max_correction_mm: float = typer.Option(
-        0.1, "--max-correction-mm", min=0.0, help="Flag passes whose ICP correction is larger."
+        0.05, "--max-correction-mm", min=0.0, help="Flag passes whose ICP correction is larger."
     ),
     max_correction_deg: float = typer.Option(
         0.05, "--max-correction-deg", min=0.0, help="Flag passes turned more than this by ICP."

@@ -566,7 +566,7 @@ class MergeOptions:
     below is what usually decides there."""
     weak_sigma_m: float = 1e-5
     """... and only directions whose 1-sigma from the fit is at most this (m)."""
-    flag_translation_m: float = 1e-4
+    flag_translation_m: float = 5e-5
     """A pass whose correction moves its centroid by more than this is flagged (m)."""
     flag_rotation_deg: float = 0.05
     """A pass whose correction turns it by more than this is flagged (degrees)."""

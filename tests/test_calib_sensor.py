@@ -451,11 +451,6 @@ def test_protective_stop_aborts_and_keeps_the_calibration_in_force(
     assert not out.with_name("s2f-report.html").exists()
 
 
-@pytest.mark.xfail(
-    reason="issue 7 open: the automatic and manual runs on the simulated cell are not yet "
-    "reliable on a loaded host (failed in CI on 2026-11-21)",
-    strict=False,
-)
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_automatic_calibration_on_the_simulated_cell(tmp_path: Path, sim_cell: Any) -> None:
@@ -479,11 +474,6 @@ def test_automatic_calibration_on_the_simulated_cell(tmp_path: Path, sim_cell: A
     assert report.read_text().count("data:image/png") == 4
 
 
-@pytest.mark.xfail(
-    reason="issue 7 open: the automatic and manual runs on the simulated cell are not yet "
-    "reliable on a loaded host (failed in CI on 2026-11-21)",
-    strict=False,
-)
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_manual_mode_records_while_the_operator_moves(tmp_path: Path, sim_cell: Any) -> None:

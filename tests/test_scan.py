@@ -655,11 +655,6 @@ def test_scan_on_the_simulated_cell_writes_aligned_clouds(cell_scan: dict[str, A
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    reason="issue 9 open: on a loaded host the simulated cell pairs profiles 2-3.5 ms off and ICP "
-    "corrections with the true calibration reach 0.1-0.2 mm (target 0.02 mm)",
-    strict=False,
-)
 def test_icp_corrections_are_small_with_the_true_calibration_and_flag_a_wrong_one(
     cell_scan: dict[str, Any],
 ) -> None:
