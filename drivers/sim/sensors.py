@@ -1067,6 +1067,9 @@ class _Runtime:
         self.period_ns = 1e9 / cfg.rate_hz / self.clock.rate
         self.latency_ns = round(cfg.latency_s * 1e9)
         self.precompute_ns = round(cfg.precompute_s * 1e9)
+        # Gather exposures for one vectorised ray-cast, for at most a quarter of the time
+        # between computing ahead and sending: the batch must still go out at its send time.
+        self.gather_ns = min(round(cfg.batch_s * 1e9), (self.latency_ns + self.precompute_ns) // 4)
         stamp = cfg.latency_s if cfg.stamp_delay_s is None else cfg.stamp_delay_s
         self.stamp_delay_ns = round(stamp * 1e9)
         self.t0_ns = time.monotonic_ns() + round(self.period_ns)
@@ -1163,7 +1166,8 @@ class _Runtime:
         """Compute the exposures that are due (one chunk); True if more are due already."""
         t_next = self._t_exp(self.k_next)
         ahead_ns = now_ns + self.precompute_ns
-        if t_next > ahead_ns:
+        # A gather window's worth at once (one vectorised ray-cast), not one per loop turn.
+        if t_next + self.gather_ns > ahead_ns:
             return False
         k_now = int((now_ns - self.t0_ns) // self.period_ns) + 1  # exposures up to now
         if not self.proto.wants_exposures() or self.down_until_ns:
@@ -1295,10 +1299,7 @@ class _Runtime:
 
     def run(self) -> None:
         self.conn.send(("ready", self.link.endpoint()))
-        # Gather exposures for one vectorised ray-cast, for at most a quarter of the time
-        # between computing ahead and sending: the batch must still go out at its send time.
-        gather_ns = min(int(self.cfg.batch_s * 1e9), (self.latency_ns + self.precompute_ns) // 4)
-        batch_ns = gather_ns - self.precompute_ns  # wake this long after the next exposure
+        batch_ns = self.gather_ns - self.precompute_ns  # wake this long after the next exposure
         while self.running:
             now = time.monotonic_ns()
             if self.down_until_ns and now >= self.down_until_ns:
