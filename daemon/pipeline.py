@@ -15,6 +15,7 @@ marks the pipeline failed, which the service turns into a non-zero exit (systemd
 from __future__ import annotations
 
 import ctypes
+import gc
 import logging
 import sys
 import threading
@@ -283,6 +284,9 @@ class Pipeline:
         self._started = False
         self._saved_switch_interval: float | None = None
         self.latency = LatencyWindow()
+        self.gc_pauses: Counter[int] = Counter()
+        """Garbage collections per generation that held every thread for more than 20 ms."""
+        self._gc_t0 = 0
         self._tick_ns = 0
 
     # --- counters and health ----------------------------------------------------------------
@@ -338,6 +342,7 @@ class Pipeline:
             "table": None if self.table is None else self.table.health().counters.as_dict(),
             "pairing": p,
             "latency_ms": self.latency.summary(),
+            "gc_pauses_over_20ms": dict(self.gc_pauses),
         }
 
     def status(self) -> dict[str, Any]:
@@ -369,7 +374,22 @@ class Pipeline:
         return self._setup
 
     # --- life cycle -----------------------------------------------------------------------------
+    def _on_gc(self, phase: str, info: dict[str, int]) -> None:
+        # A collection holds the GIL: every thread of the pipeline waits for it.
+        if phase == "start":
+            self._gc_t0 = time.monotonic_ns()
+            return
+        pause_ns = time.monotonic_ns() - self._gc_t0
+        if pause_ns > 20_000_000:
+            self.gc_pauses[info.get("generation", -1)] += 1
+            log.warning(
+                "garbage collection (generation %d) held the pipeline for %.0f ms",
+                info.get("generation", -1),
+                pause_ns * 1e-6,
+            )
+
     def start(self) -> None:
+        gc.callbacks.append(self._on_gc)
         interval = self.settings.gil_switch_interval_s
         if interval is not None and not getattr(self.sensor, "kernel_stamps", False):
             self._saved_switch_interval = sys.getswitchinterval()
@@ -392,6 +412,8 @@ class Pipeline:
         self._stop.set()
         self._worker.join(timeout_s)
         self._started = False
+        if self._on_gc in gc.callbacks:
+            gc.callbacks.remove(self._on_gc)
         if self._saved_switch_interval is not None:
             sys.setswitchinterval(self._saved_switch_interval)
             self._saved_switch_interval = None
