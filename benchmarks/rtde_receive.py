@@ -26,7 +26,6 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -52,24 +51,12 @@ def _cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / CLK_TCK
 
 
-def _drain(r: URRobot, seconds: float) -> list[Any]:
-    out = []
-    end = time.monotonic() + seconds
-    while time.monotonic() < end:
-        s = r.read(timeout=0.1)
-        if s is not None:
-            out.append(s)
-    while (s := r.read(timeout=0)) is not None:
-        out.append(s)
-    return out
-
-
 def run_one(backend: str, hog: bool, duration_s: float) -> dict[str, float]:
     with (
         SimulatedController.on_free_loopback(ControllerConfig()) as sim,
         URRobot(sim.host, receive_backend=backend) as r,
     ):
-        _drain(r, WARMUP_S)
+        r.read_for(WARMUP_S)
         rx = r._rx  # the receive child: a benchmark may look inside
         assert rx is not None
         pid = rx.proc.pid
@@ -82,7 +69,7 @@ def run_one(backend: str, hog: bool, duration_s: float) -> dict[str, float]:
                 for _ in range(os.cpu_count() or 2)
             ]
         try:
-            states = _drain(r, duration_s)
+            states = r.read_for(duration_s)
         finally:
             for h in hogs:
                 h.kill()

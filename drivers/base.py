@@ -216,6 +216,19 @@ class Device(ABC, Generic[R]):
             if not self._open_flag:
                 return None
 
+    def read_for(self, duration_s: float, drain: bool = True) -> list[R]:
+        """Every record that arrives within ``duration_s`` seconds, then (``drain``) whatever
+        the driver already holds at the end, without waiting."""
+        out: list[R] = []
+        end = time.monotonic() + duration_s
+        while (remaining := end - time.monotonic()) > 0:
+            rec = self.read(timeout=min(0.1, remaining))
+            if rec is not None:
+                out.append(rec)
+        while drain and (rec := self.read(timeout=0)) is not None:
+            out.append(rec)
+        return out
+
     def __iter__(self) -> Iterator[R]:
         while self._open_flag:
             rec = self.read(timeout=0.1)

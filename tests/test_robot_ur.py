@@ -82,13 +82,7 @@ def robot(host: str, **kwargs: Any) -> Iterator[URRobot]:
 
 
 def collect(r: URRobot, seconds: float) -> list[RobotState]:
-    out: list[RobotState] = []
-    end = time.monotonic() + seconds
-    while time.monotonic() < end:
-        s = r.read(timeout=0.1)
-        if s is not None:
-            out.append(s)
-    return out
+    return r.read_for(seconds, drain=False)
 
 
 def drain(r: URRobot, states: list[RobotState]) -> None:

@@ -296,21 +296,9 @@ def test_framing_split_packets_and_stray_packets() -> None:
 # ------------------------------------------------------------------------ URRobot, native
 
 
-def _collect(r: URRobot, seconds: float) -> list[RobotState]:
-    out: list[RobotState] = []
-    end = time.monotonic() + seconds
-    while time.monotonic() < end:
-        s = r.read(timeout=0.1)
-        if s is not None:
-            out.append(s)
-    while (s := r.read(timeout=0)) is not None:
-        out.append(s)
-    return out
-
-
 def test_robot_native_loses_nothing_under_cpu_hog() -> None:
     with controller() as sim, URRobot(sim.host, receive_backend="native") as r:
-        _collect(r, 0.2)
+        r.read_for(0.2)
         lost0, skipped0 = r.counters.lost, sim.state()["skipped_cycles"]
         hogs = [
             subprocess.Popen([sys.executable, "-c", "while True: pass"])
@@ -318,13 +306,13 @@ def test_robot_native_loses_nothing_under_cpu_hog() -> None:
         ]
         try:
             sim.send_text_message("mid-stream notice", "test", 3)
-            states = _collect(r, 2.0)
+            states = r.read_for(2.0)
         finally:
             for hog in hogs:
                 hog.kill()
             for hog in hogs:
                 hog.wait()
-        states += _collect(r, 0.1)
+        states += r.read_for(0.1)
         h = r.health()
         skipped = sim.state()["skipped_cycles"] - skipped0
     t = np.array([s.controller_time_s for s in states])
@@ -344,7 +332,7 @@ def test_robot_native_survives_controller_restart() -> None:
             r.open()
             # Over a second of history, so that the new controller's clock (from 0) is seen
             # as a restart rather than as reordered samples.
-            before = _collect(r, 1.5)
+            before = r.read_for(1.5)
             assert before and r.counters.reconnects == 0
         t_down = time.monotonic()
         while r.health().state is not LinkState.RECONNECTING:
