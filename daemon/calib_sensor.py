@@ -213,7 +213,7 @@ class Settings:
     margin_m: float = 0.003
     """Clearance between the ball and the edges of the field of view, and the overshoot of each
     sweep beyond the ball."""
-    fov_grid: int = 3
+    fov_grid: int = 4
     """Field-of-view locations: ``fov_grid x fov_grid`` (lateral x depth)."""
     sweep_speed_m_s: float = 0.02
     sweep_accel_m_s2: float = 0.5
@@ -221,7 +221,7 @@ class Settings:
     travel_accel_m_s2: float = 0.5
     joint_speed_rad_s: float = 0.6
     joint_accel_rad_s2: float = 1.2
-    n_orientations: int = 6
+    n_orientations: int = 10
     """Tilted orientations around the ball (besides the start orientation)."""
     tilt_deg: float = 52.0
     """Angle between the sensor Z axis of each tilted orientation and the start orientation's.

@@ -185,9 +185,9 @@ def sensor(
         None, "--depth-min-mm", help="Measuring range start."
     ),
     depth_max_mm: float | None = typer.Option(None, "--depth-max-mm", help="Measuring range end."),
-    grid: int = typer.Option(3, "--grid", min=2, max=5, help="Field-of-view grid (n x n)."),
+    grid: int = typer.Option(4, "--grid", min=2, max=5, help="Field-of-view grid (n x n)."),
     orientations: int = typer.Option(
-        6, "--orientations", min=2, max=12, help="Tilted orientations around the ball."
+        10, "--orientations", min=2, max=12, help="Tilted orientations around the ball."
     ),
     tilt_deg: float = typer.Option(
         52.0, "--tilt-deg", min=45.0, max=80.0, help="Tilt of the orientations (>= 45 deg)."
