@@ -44,14 +44,15 @@ def _rot_err_deg(A: np.ndarray, B: np.ndarray) -> float:
 def test_fov_targets_stay_inside_the_laser_plane_with_margins() -> None:
     s = cs.Settings(fov_width_m=0.05, depth_min_m=0.05, depth_max_m=0.15, margin_m=0.003)
     g = cs.fov_targets(s)
-    assert g.shape == (9, 3) and np.all(g[:, 0] == 0)
+    n = s.fov_grid
+    assert g.shape == (n * n, 3) and np.all(g[:, 0] == 0)
     # The whole ball stays inside the line and the measuring range (near cap and outline).
     assert np.all(np.abs(g[:, 1]) + R_BALL <= 0.025 - 0.003 + 1e-12)
     assert np.all(g[:, 2] - R_BALL >= 0.05 + 0.003 - 1e-12) and np.all(g[:, 2] <= 0.147 + 1e-12)
-    assert len({tuple(r) for r in np.round(g, 6)}) == 9
+    assert len({tuple(r) for r in np.round(g, 6)}) == n * n
     # Serpentine: consecutive locations are neighbours on the grid.
     steps = np.linalg.norm(np.diff(g, axis=0), axis=1)
-    assert steps.max() <= max(np.ptp(g[:, 1]) / 2, np.ptp(g[:, 2]) / 2) + 1e-9
+    assert steps.max() <= max(np.ptp(g[:, 1]), np.ptp(g[:, 2])) / (n - 1) + 1e-9
     with pytest.raises(ValueError, match="too short"):
         cs.Settings(fov_width_m=0.03).check()
 
