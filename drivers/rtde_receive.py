@@ -352,16 +352,15 @@ class RtdeReceiver:
                 pos += size
                 n += 1
                 continue
-            psize, ptype = wire.HEADER.unpack_from(data, pos)
-            if psize < wire.HEADER.size:
+            try:
+                packet = wire.next_packet(data, pos)
+            except ValueError as exc:
                 raise RtdeLinkLost(
-                    f"RTDE {self.address}: malformed packet (size {psize}): the stream is out of "
-                    "step"
-                )
-            if end - pos < psize:
+                    f"RTDE {self.address}: malformed packet ({exc}): the stream is out of step"
+                ) from None
+            if packet is None:
                 break
-            payload = data[pos + wire.HEADER.size : pos + psize]
-            pos += psize
+            ptype, payload, pos = packet
             if ptype == wire.DATA_PACKAGE and payload[:1] == header[3:4]:
                 raise RtdeLinkLost(
                     f"RTDE {self.address}: a data package of {len(payload)} bytes, the recipe "
@@ -394,16 +393,15 @@ class RtdeReceiver:
     # ------------------------------------------------------------------ handshake
 
     def _next_packet(self) -> tuple[int, bytes] | None:
-        data = self._buf
-        if len(data) < wire.HEADER.size:
+        try:
+            packet = wire.next_packet(self._buf)
+        except ValueError as exc:
+            raise RtdeHandshakeError(f"RTDE {self.address}: malformed packet ({exc})") from None
+        if packet is None:
             return None
-        psize, ptype = wire.HEADER.unpack_from(data)
-        if psize < wire.HEADER.size:
-            raise RtdeHandshakeError(f"RTDE {self.address}: malformed packet (size {psize})")
-        if len(data) < psize:
-            return None
-        self._buf = data[psize:]
-        return ptype, data[wire.HEADER.size : psize]
+        ptype, payload, end = packet
+        self._buf = self._buf[end:]
+        return ptype, payload
 
     def _request(self, ptype: int, payload: bytes, deadline: float) -> bytes:
         """Send one request and return the payload of its reply, taking in text messages."""

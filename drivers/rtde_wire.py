@@ -36,6 +36,7 @@ __all__ = [
     "Recipe",
     "encode",
     "encode_text_message",
+    "next_packet",
     "parse_text_message",
     "split_names",
     "zero_value",
@@ -333,6 +334,19 @@ class Recipe:
         return out
 
 
+def next_packet(buf: bytes | bytearray, pos: int = 0) -> tuple[int, bytes, int] | None:
+    """The packet that starts at ``pos`` in ``buf``: ``(type, payload, end)``, or None while it is
+    incomplete. Raises ``ValueError`` for a size shorter than the header (a stream out of step)."""
+    if len(buf) - pos < HEADER.size:
+        return None
+    size, ptype = HEADER.unpack_from(buf, pos)
+    if size < HEADER.size:
+        raise ValueError(f"RTDE packet size {size} is shorter than its header")
+    if len(buf) - pos < size:
+        return None
+    return ptype, bytes(buf[pos + HEADER.size : pos + size]), pos + size
+
+
 class PacketReader:
     """Splits a byte stream into ``(type, payload)`` packets."""
 
@@ -341,12 +355,7 @@ class PacketReader:
 
     def feed(self, data: bytes) -> Iterator[tuple[int, bytes]]:
         self._buf += data
-        while len(self._buf) >= HEADER.size:
-            size, ptype = HEADER.unpack_from(self._buf)
-            if size < HEADER.size:
-                raise ValueError(f"RTDE packet size {size} is shorter than its header")
-            if len(self._buf) < size:
-                return
-            payload = bytes(self._buf[HEADER.size : size])
-            del self._buf[:size]
+        while (packet := next_packet(self._buf)) is not None:
+            ptype, payload, end = packet
+            del self._buf[:end]
             yield ptype, payload
