@@ -247,39 +247,36 @@ class Pipeline:
         self._failure: BaseException | None = None
         self._last_progress_ns = time.monotonic_ns()
         self._utc_offset_ns = time.time_ns() - time.monotonic_ns()
-        self._readers: list[_Reader[Any]] = [
-            _Reader(
-                "sensor", sensor, self._profiles, s.profile_queue, self._drop_profile, self._fail
-            ),
-            _Reader(
-                "robot",
-                robot,
-                self._robot_q,
-                s.state_queue,
-                self._drop_state,
-                self._fail,
-                self._states_arrived,
-            ),
-        ]
-        if table is not None:
+        self._kernel_stamps = bool(getattr(sensor, "kernel_stamps", False))
+        self.inline_sensor = self._kernel_stamps if s.inline_sensor is None else s.inline_sensor
+        self.sensor_errors = 0
+        self._readers: list[_Reader[Any]] = []
+        if not self.inline_sensor:
             self._readers.append(
                 _Reader(
-                    "table",
-                    table,
-                    self._table_q,
+                    "sensor",
+                    sensor,
+                    self._profiles,
+                    s.profile_queue,
+                    self._drop_profile,
+                    self._fail,
+                )
+            )
+        states: list[tuple[str, Device[Any], deque[Any]]] = [("robot", robot, self._robot_q)]
+        if table is not None:
+            states.append(("table", table, self._table_q))
+        for name, device, sink in states:
+            self._readers.append(
+                _Reader(
+                    name,
+                    device,
+                    sink,
                     s.state_queue,
                     self._drop_state,
                     self._fail,
                     self._states_arrived,
                 )
             )
-        inline = s.inline_sensor
-        if inline is None:
-            inline = bool(getattr(sensor, "kernel_stamps", False))
-        self.inline_sensor = inline
-        self.sensor_errors = 0
-        if inline:
-            self._readers.pop(0)
         self._worker = threading.Thread(target=self._work, name="pipeline-worker", daemon=True)
         self._started = False
         self._saved_switch_interval: float | None = None
@@ -391,7 +388,7 @@ class Pipeline:
     def start(self) -> None:
         gc.callbacks.append(self._on_gc)
         interval = self.settings.gil_switch_interval_s
-        if interval is not None and not getattr(self.sensor, "kernel_stamps", False):
+        if interval is not None and not self._kernel_stamps:
             self._saved_switch_interval = sys.getswitchinterval()
             sys.setswitchinterval(min(interval, self._saved_switch_interval))
         self._started = True
