@@ -742,10 +742,6 @@ def measure_raw_zenoh(payload_bytes: int, runs: int = 3, seconds: float = 2.0) -
 # ----------------------------------------------------------------------------------------------
 # What the host allows, and what the hot path costs (both independent of the daemon's threads)
 
-_SO_TIMESTAMPNS = 35
-"""Linux: the kernel stamps each datagram on arrival (CLOCK_REALTIME); not in Python 3.11's
-socket module."""
-
 
 def _blast(port: int, rate_hz: float, size: int, seconds: float) -> int:
     """Send ``size``-byte datagrams to loopback ``port`` at ``rate_hz`` (paced every 1 ms)."""
@@ -769,10 +765,11 @@ def measure_bare_receiver(
     """Kernel arrival to user-space stamp of a bare Python UDP receiver (no other work) at
     ``rate_hz``: what scheduling alone adds on this host now. The sensor reader stamps its
     datagrams at the same point, so this is a floor for the pipeline's timing."""
-    import struct
+    from wristscan.drivers._udp import SO_TIMESTAMPNS, kernel_stamp
 
+    assert SO_TIMESTAMPNS is not None, "kernel receive stamps need Linux"
     rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    rx.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+    rx.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
     rx.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 8 << 20)
     rx.bind(("127.0.0.1", 0))
     rx.settimeout(0.5)
@@ -789,12 +786,9 @@ def measure_bare_receiver(
                 if sender.poll() is not None:
                     break
                 continue
-            now = time.time_ns()
+            now = time.monotonic_ns()
             n += 1
-            for _level, kind, cdata in anc:
-                if kind == _SO_TIMESTAMPNS:
-                    sec, nsec = struct.unpack("ll", cdata[:16])
-                    delays.append(now - (sec * 1_000_000_000 + nsec))
+            delays.append(now - kernel_stamp(anc, now))
     finally:
         sender.wait(30)
         rx.close()

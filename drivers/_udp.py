@@ -31,16 +31,15 @@ from ._sensor import SensorCore
 from .base import DriverInitError
 from .records import Profile
 
-__all__ = ["UdpProfileSensor"]
+__all__ = ["SO_TIMESTAMPNS", "UdpProfileSensor", "kernel_stamp"]
 
 log = logging.getLogger(__name__)
 
 MAX_DATAGRAM = 65536
 
-_SO_TIMESTAMPNS = getattr(
-    socket, "SO_TIMESTAMPNS", 35 if sys.platform.startswith("linux") else None
-)
-"""Linux asm-generic value; Python 3.11's socket module does not name it."""
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35 if sys.platform.startswith("linux") else None)
+"""Linux asm-generic value; Python 3.11's socket module does not name it. The kernel then
+stamps each datagram on arrival (CLOCK_REALTIME), see :func:`kernel_stamp`."""
 _TIMESPEC = struct.Struct("@qq")
 _ANC_SPACE = socket.CMSG_SPACE(_TIMESPEC.size)
 
@@ -53,11 +52,11 @@ def _resolve_ipv4(host: str) -> str:
     return str(infos[0][4][0])
 
 
-def _kernel_stamp(ancillary: list[tuple[int, int, bytes]], now_mono_ns: int) -> int:
+def kernel_stamp(ancillary: list[tuple[int, int, bytes]], now_mono_ns: int) -> int:
     """The kernel's receipt time of a datagram on the monotonic clock (``now_mono_ns`` when
     the message carries none)."""
     for level, kind, data in ancillary:
-        if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(data) >= _TIMESPEC.size:
+        if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(data) >= _TIMESPEC.size:
             sec, nsec = _TIMESPEC.unpack_from(data)
             return min(now_mono_ns, sec * 1_000_000_000 + nsec - _real_minus_mono())
     return now_mono_ns
@@ -154,10 +153,10 @@ class UdpProfileSensor(SensorCore):
 
     @staticmethod
     def _enable_kernel_stamps(sock: socket.socket) -> bool:
-        if _SO_TIMESTAMPNS is None:
+        if SO_TIMESTAMPNS is None:
             return False
         try:
-            sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+            sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
         except OSError:
             return False
         return True
@@ -225,7 +224,7 @@ class UdpProfileSensor(SensorCore):
                 return None
             host_ns = time.monotonic_ns()
             if kernel:
-                host_ns = _kernel_stamp(anc, host_ns)
+                host_ns = kernel_stamp(anc, host_ns)
             self._last_rx_ns = host_ns
             self.counters.bytes += n
             if self._source_ip is not None and addr[0] != self._source_ip:
