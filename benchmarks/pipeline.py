@@ -650,6 +650,10 @@ def measure_pipeline(
         "lost_profiles": sent - sub_profiles,
         "batch_gaps": gaps,
         "sim_overrun": int(s_b["overrun"] - s_a["overrun"]),
+        "sim_sent_late_5ms": int(s_b["sent_late_5ms"] - s_a["sent_late_5ms"]),
+        "sim_max_send_late_ms": s_b["max_send_late_us"] / 1e3,
+        "daemon_slow_ticks": int(d_b.get("slow_ticks", 0)) - int(d_a.get("slow_ticks", 0)),
+        "daemon_tick_ms_max": float(d_b.get("tick_ms_max", float("nan"))),
         "robot_samples_lost": int(d_b["robot"]["lost"]) - int(d_a["robot"]["lost"]),
         "robot_lag_p50_ms": float(np.percentile(robot_lag, 50)) if robot_lag.size else float("nan"),
         "robot_lag_p99_ms": float(np.percentile(robot_lag, 99)) if robot_lag.size else float("nan"),
@@ -991,6 +995,17 @@ def _run(
             Figure(f"{k} batches lost (seq gaps)", r["batch_gaps"], "", "0", r["batch_gaps"] == 0),
             Figure(f"{k} robot samples lost (of 500/s)", r["robot_samples_lost"], "", "-", None),
             Figure(f"{k} exposures the simulator skipped", r["sim_overrun"], "", "-", None),
+            Figure(
+                f"{k} profiles the simulator sent > 5 ms late",
+                r["sim_sent_late_5ms"],
+                "",
+                "-",
+                None,
+            ),
+            Figure(f"{k} daemon ticks over 50 ms", r["daemon_slow_ticks"], "", "-", None),
+            Figure(
+                f"{k} daemon longest tick (whole run)", r["daemon_tick_ms_max"], "ms", "-", None
+            ),
             Figure(f"{k} simulated robot lag p50", r["robot_lag_p50_ms"], "ms", "-", None),
             Figure(f"{k} simulated robot lag p99", r["robot_lag_p99_ms"], "ms", "-", None),
             Figure(f"{k} latency p50", r["latency_p50_ms"], "ms", "-", None),
@@ -1034,7 +1049,8 @@ def _run(
             f"{[round(c.get('uncertainty_us', 0), 1) for c in r['sensor_clock_end'].values()]} "
             f"us) "
             f"robot {r['robot_clock_restarts']}; robot samples lost {r['robot_samples_lost']}; "
-            f"simulator: overrun {r['sim_overrun']}, CPU {r['sim_sensor_cpu_pct']:.0f} %; "
+            f"simulator: overrun {r['sim_overrun']}, latest send {r['sim_max_send_late_ms']:.1f} "
+            f"ms late (whole run), CPU {r['sim_sensor_cpu_pct']:.0f} %; "
             f"daemon CPU by thread (% core) "
             f"{ {k: round(v, 1) for k, v in r['thread_cpu_pct'].items() if v >= 0.5} }; "
             f"daemon page faults {r['minor_faults_s']:.0f}/s; load {r['loadavg']:.1f}; UTC "

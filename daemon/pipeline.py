@@ -38,6 +38,9 @@ __all__ = ["AlignmentSetup", "LatencyWindow", "Pipeline", "PipelineSettings"]
 
 log = logging.getLogger(__name__)
 
+_SLOW_TICK_NS = 50_000_000
+"""A tick longer than this (five batch periods at the default) is counted and logged."""
+
 T = TypeVar("T")
 
 
@@ -63,6 +66,10 @@ class PipelineSettings:
     """At a tick, wait up to this long for the robot (or table) states that profiles already
     received still need (the state after their exposure is a few ms away), and publish them in
     this tick's batch instead of one whole period later."""
+    read_ahead_s: float = 0.002
+    """Between ticks the worker reads, decodes and queues what has arrived every this long
+    (0: only at ticks), so that a tick has only the newest profiles left to decode: the same
+    CPU per profile, off the path from tick to publication."""
     publish_intensity: bool = False
     publish_profile_index: bool = False
     inline_sensor: bool | None = None
@@ -283,6 +290,9 @@ class Pipeline:
         self.latency = LatencyWindow()
         self.gc_pauses: Counter[int] = Counter()
         """Garbage collections per generation that held every thread for more than 20 ms."""
+        self.slow_ticks = 0
+        """Ticks that took over ``_SLOW_TICK_NS`` from start to the last publish."""
+        self.tick_ms_max = 0.0
         self._gc_t0 = 0
         self._tick_ns = 0
 
@@ -340,6 +350,8 @@ class Pipeline:
             "pairing": p,
             "latency_ms": self.latency.summary(),
             "gc_pauses_over_20ms": dict(self.gc_pauses),
+            "slow_ticks": self.slow_ticks,
+            "tick_ms_max": round(self.tick_ms_max, 3),
         }
 
     def status(self) -> dict[str, Any]:
@@ -502,6 +514,36 @@ class Pipeline:
         self.published_profiles += batch.n_profiles
         self.published_points += int(xyz.shape[0])
 
+    def _wait_for_tick(self, tick: float) -> bool:
+        """Sleep until the monotonic time ``tick``, reading ahead meanwhile; True to stop."""
+        step = self.settings.read_ahead_s
+        while True:
+            now = time.monotonic()
+            if step <= 0 or tick - now <= step:
+                return self._stop.wait(max(0.0, tick - now))
+            if self._stop.wait(step):
+                return True
+            with self._tick_lock:
+                if self.inline_sensor:
+                    self._read_sensor_inline()
+                self._drain()
+
+    def _note_tick(self, t0: int, t1: int, t2: int, cpu_ns: int) -> None:
+        """Keep the longest tick; log a slow one with where its time went (its own CPU time
+        against the wall time tells waiting for a CPU or a lock from working)."""
+        ms = (t2 - t0) * 1e-6
+        self.tick_ms_max = max(self.tick_ms_max, ms)
+        if t2 - t0 > _SLOW_TICK_NS:
+            self.slow_ticks += 1
+            log.warning(
+                "slow tick: %.0f ms (reading and pairing %.0f ms, aligning and publishing %.0f "
+                "ms; the worker's CPU time %.0f ms)",
+                ms,
+                (t1 - t0) * 1e-6,
+                (t2 - t1) * 1e-6,
+                cpu_ns * 1e-6,
+            )
+
     def _work(self) -> None:
         _name_os_thread(self._worker.name)
         period = self.settings.batch_s
@@ -511,17 +553,20 @@ class Pipeline:
             while True:
                 # Ticks on a fixed schedule (the work of a tick does not stretch the period,
                 # which would add to every profile's latency); missed ticks are not made up.
-                stopping = self._stop.wait(max(0.0, next_tick - time.monotonic()))
+                stopping = self._wait_for_tick(next_tick)
                 next_tick = max(next_tick + period, time.monotonic())
                 with self._tick_lock:
-                    self._tick_ns = time.monotonic_ns()
+                    self._tick_ns = t0 = time.monotonic_ns()
+                    cpu0 = time.thread_time_ns()
                     batches = self._pair(stopping)
                     if stopping:
                         if getattr(self, "_drain_on_stop", True):
                             batches.extend(self.pairer.flush())
+                    t1 = time.monotonic_ns()
                     for b in batches:
                         self._emit(b)
-                self._last_progress_ns = time.monotonic_ns()
+                self._last_progress_ns = t2 = time.monotonic_ns()
+                self._note_tick(t0, t1, t2, time.thread_time_ns() - cpu0)
                 if self._publish_status is not None and time.monotonic() >= next_status:
                     next_status += self.settings.status_period_s
                     self._publish_status(self.status())

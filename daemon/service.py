@@ -9,6 +9,7 @@ in the main thread.
 
 from __future__ import annotations
 
+import gc
 import logging
 import signal
 import threading
@@ -144,6 +145,9 @@ class Service:
             ),
             publish_status=face.publish_status,
         )
+        # What start-up built (modules, devices, sessions) lives as long as the service: out of
+        # the collector's way, a full collection scans only what the pipeline makes.
+        gc.freeze()
         pipeline.start()
         self.cfg, self.devices, self.pipeline = cfg, devices, pipeline
         self.zenoh, self._session = face, session

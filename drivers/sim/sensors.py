@@ -322,7 +322,8 @@ class SimulatedSensor(SimProcess):
     def stats(self) -> dict[str, int]:
         """Counters: exposures, profiles_sent, units_sent, dropped, duplicated, reordered,
         truncated, corrupted, overrun, unsent (nobody listening/disconnected), truth_clamped,
-        tx_overflow, clients."""
+        tx_overflow, clients, sent_late_5ms (profiles sent over 5 ms after their send time: the
+        simulator fell behind and sent a burst), max_send_late_us."""
         result: dict[str, int] = self._call("stats")
         return result
 
@@ -1006,6 +1007,8 @@ _STAT_KEYS = (
     "truth_clamped",
     "tx_overflow",
     "clients",
+    "sent_late_5ms",
+    "max_send_late_us",
 )
 
 
@@ -1289,11 +1292,19 @@ class _Runtime:
 
     def _send_due(self, now_ns: int) -> None:
         q = self.queue
+        stats = self.stats
         while q and q[0][0] <= now_ns:
-            _, units = q.popleft()
+            due, units = q.popleft()
             for u in units:
                 self._emit(u)
-            self.stats["profiles_sent"] += 1
+            stats["profiles_sent"] += 1
+            # A late simulator sends in a burst, which a real sensor never does: counted so a
+            # benchmark can tell the simulator's stalls from the daemon's.
+            late_us = (now_ns - due) // 1000
+            if late_us > 5000:
+                stats["sent_late_5ms"] += 1
+            if late_us > stats["max_send_late_us"]:
+                stats["max_send_late_us"] = late_us
 
     # -- loop -----------------------------------------------------------------------------------
 
