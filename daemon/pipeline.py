@@ -528,7 +528,9 @@ class Pipeline:
                     self._read_sensor_inline()
                 self._drain()
 
-    def _note_tick(self, t0: int, t1: int, t2: int, cpu_ns: int) -> None:
+    def _note_tick(
+        self, t0: int, t1: int, t2: int, cpu_ns: int, batches: list[PairedBatch]
+    ) -> None:
         """Keep the longest tick; log a slow one with where its time went (its own CPU time
         against the wall time tells waiting for a CPU or a lock from working)."""
         ms = (t2 - t0) * 1e-6
@@ -536,9 +538,11 @@ class Pipeline:
         if t2 - t0 > _SLOW_TICK_NS:
             self.slow_ticks += 1
             log.warning(
-                "slow tick: %.0f ms (reading and pairing %.0f ms, aligning and publishing %.0f "
-                "ms; the worker's CPU time %.0f ms)",
+                "slow tick: %.0f ms for %d profiles in %d batches (reading and pairing %.0f ms, "
+                "aligning and publishing %.0f ms; the worker's CPU time %.0f ms)",
                 ms,
+                sum(b.n_profiles for b in batches),
+                len(batches),
                 (t1 - t0) * 1e-6,
                 (t2 - t1) * 1e-6,
                 cpu_ns * 1e-6,
@@ -566,7 +570,7 @@ class Pipeline:
                     for b in batches:
                         self._emit(b)
                 self._last_progress_ns = t2 = time.monotonic_ns()
-                self._note_tick(t0, t1, t2, time.thread_time_ns() - cpu0)
+                self._note_tick(t0, t1, t2, time.thread_time_ns() - cpu0, batches)
                 if self._publish_status is not None and time.monotonic() >= next_status:
                     next_status += self.settings.status_period_s
                     self._publish_status(self.status())

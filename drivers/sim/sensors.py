@@ -1315,8 +1315,11 @@ class _Runtime:
             now = time.monotonic_ns()
             if self.down_until_ns and now >= self.down_until_ns:
                 self._come_back(now)
-            more = self._produce(now)
+            # Send what is due before and after computing: a chunk of exposures takes a good
+            # part of a millisecond to compute, which would otherwise make every send late.
             self._send_due(now)
+            more = self._produce(now)
+            self._send_due(time.monotonic_ns())
             self.proto.periodic(now, self.k_next)
             self.link.flush(now)
             if more:  # behind: keep computing, only glance at the control pipe and sockets
