@@ -74,9 +74,9 @@ class PipelineSettings:
     publish_profile_index: bool = False
     inline_sensor: bool | None = None
     """Read the sensor in the worker at each tick instead of in a reader thread (None: when the
-    driver stamps receipt in the kernel, ``kernel_stamps``; then reading late loses no timing,
-    the socket buffer holds the tick's datagrams, and a thread woken per profile, competing for
-    the GIL with the worker, is saved)."""
+    driver's records are ``stamped_on_receipt``, e.g. by the kernel; then reading late loses no
+    timing, the socket buffer holds the tick's datagrams, and a thread woken per profile,
+    competing for the GIL with the worker, is saved)."""
     gil_switch_interval_s: float | None = 0.0005
     """Python's thread switch interval while the pipeline runs, for sensor drivers that stamp
     a record when their thread gets the GIL back after the receive call: with Python's default
@@ -254,9 +254,10 @@ class Pipeline:
         self._failure: BaseException | None = None
         self._last_progress_ns = time.monotonic_ns()
         self._utc_offset_ns = time.time_ns() - time.monotonic_ns()
-        self._kernel_stamps = bool(getattr(sensor, "kernel_stamps", False))
+        self._kernel_stamps = sensor.stamped_on_receipt
         self.inline_sensor = self._kernel_stamps if s.inline_sensor is None else s.inline_sensor
-        self.sensor_errors = 0
+        self.read_errors: Counter[str] = Counter()
+        """Driver errors met while reading inline, by device (the drivers reconnect)."""
         self._readers: list[_Reader[Any]] = []
         if not self.inline_sensor:
             self._readers.append(
@@ -324,6 +325,9 @@ class Pipeline:
         """Counters (JSON-friendly). ``received == published + sum(dropped) + pending``, exactly:
         ``received`` counts the profiles the sensor reader handed to the pipeline (the driver's
         own count, in ``sensor``, may be ahead by the one record the reader holds)."""
+        return self._stats(latency=True)
+
+    def _stats(self, latency: bool) -> dict[str, Any]:
         with self._tick_lock:
             p = self.pairer.stats()
             published = self.published_profiles
@@ -348,14 +352,15 @@ class Pipeline:
             "robot": self.robot.health().counters.as_dict(),
             "table": None if self.table is None else self.table.health().counters.as_dict(),
             "pairing": p,
-            "latency_ms": self.latency.summary(),
+            "latency_ms": self.latency.summary() if latency else {},
+            "read_errors": dict(self.read_errors),
             "gc_pauses_over_20ms": dict(self.gc_pauses),
             "slow_ticks": self.slow_ticks,
             "tick_ms_max": round(self.tick_ms_max, 3),
         }
 
     def status(self) -> dict[str, Any]:
-        st = self.stats()
+        st = self._stats(latency=False)  # the worker publishes this: no percentiles to sort
         devices: dict[str, Device[Any]] = {"sensor": self.sensor, "robot": self.robot}
         if self.table is not None:
             devices["table"] = self.table
@@ -430,13 +435,15 @@ class Pipeline:
     # --- worker ---------------------------------------------------------------------------------
     def _read_sensor_inline(self) -> None:
         """Everything the sensor driver holds now (inline mode), into the profile queue."""
+        if not self.inline_sensor:
+            return
         read, sink, maxsize = self.sensor.read, self._profiles, self.settings.profile_queue
         for _ in range(1_000_000):  # bounded: a flood cannot keep the worker here forever
             try:
                 rec = read(timeout=0.0)
             except DriverError as exc:
-                # The driver reconnects by itself; the next tick tries again.
-                self.sensor_errors += 1
+                # The driver reconnects by itself; the next step tries again.
+                self.read_errors[self.sensor.kind] += 1
                 log.warning("%s: %s", self.sensor.kind, exc)
                 return
             if rec is None:
@@ -463,8 +470,7 @@ class Pipeline:
     def _pair(self, stopping: bool) -> list[PairedBatch]:
         """This tick's batches: pair what arrived, then wait up to ``state_wait_s`` for the
         states that received profiles still need (not while stopping)."""
-        if self.inline_sensor:
-            self._read_sensor_inline()
+        self._read_sensor_inline()
         self._drain()
         batches = self.pairer.poll()
         deadline = time.monotonic() + self.settings.state_wait_s
@@ -524,8 +530,7 @@ class Pipeline:
             if self._stop.wait(step):
                 return True
             with self._tick_lock:
-                if self.inline_sensor:
-                    self._read_sensor_inline()
+                self._read_sensor_inline()
                 self._drain()
 
     def _note_tick(

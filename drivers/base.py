@@ -193,6 +193,13 @@ class Device(ABC, Generic[R]):
     def is_open(self) -> bool:
         return self._open_flag
 
+    @property
+    def stamped_on_receipt(self) -> bool:
+        """True when records carry a receipt time taken before :meth:`read` is called (by the
+        kernel, or by a receiving process of the driver's own): a caller may then read them
+        late and in bursts without changing their timing."""
+        return False
+
     def __enter__(self) -> Self:
         return self.open()
 

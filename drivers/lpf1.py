@@ -130,9 +130,10 @@ def _x_grid(n: int, x_scale_nm: int, x_offset_um: int) -> NDArray[np.float64]:
     return x
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class Header:
-    """Decoded header fields (units: ns, nm, µm as in the names)."""
+    """Decoded header fields (units: ns, nm, µm as in the names); treat as read-only (not
+    frozen: a frozen dataclass costs 2 µs more to build, once per datagram)."""
 
     version: int
     header_len: int
@@ -258,12 +259,11 @@ def decode_profile(message: Message | bytes, host_time_ns: int = 0) -> Profile:
         valid = np.isfinite(z)
     else:
         valid = z_raw != sentinel
-        # Cast to float before scaling: integer products would wrap.
-        z = z_raw.astype(np.float64)
-        z *= h.z_scale_nm * 1e-9
+        # Scaled in float64 (the ufunc casts first): integer products would wrap.
+        z = np.multiply(z_raw, h.z_scale_nm * 1e-9, dtype=np.float64)
         z += h.z_offset_um * 1e-6
     if x_raw is None:
-        x = _x_grid(n, h.x_scale_nm, h.x_offset_um).copy()
+        x = _x_grid(n, h.x_scale_nm, h.x_offset_um)  # read-only, shared by such profiles
     elif sentinel is None:
         x = x_raw.astype(np.float64)
         valid &= np.isfinite(x)
@@ -272,7 +272,8 @@ def decode_profile(message: Message | bytes, host_time_ns: int = 0) -> Profile:
         x = x_raw.astype(np.float64) * (h.x_scale_nm * 1e-9) + h.x_offset_um * 1e-6
         x[~x_ok] = np.nan
         valid &= x_ok
-    z[~valid] = np.nan
+    if not valid.all():
+        z[~valid] = np.nan
     return Profile(
         sensor_id=h.sensor_id,
         frame_counter=h.frame_counter,

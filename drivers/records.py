@@ -19,7 +19,8 @@ class Profile:
     """One laser profile in the sensor frame (laser plane = sensor Y-Z plane, X normal to it).
 
     ``y`` and ``z`` are float64 arrays in metres of equal length; ``valid`` marks points the
-    sensor measured (invalid points keep their slot so indices stay stable).
+    sensor measured (invalid points keep their slot so indices stay stable). Drivers may hand
+    out a read-only ``y`` shared by the profiles of a uniform lateral grid: copy before editing.
     """
 
     sensor_id: int
