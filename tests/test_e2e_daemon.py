@@ -159,6 +159,9 @@ def test_daemon_end_to_end(tmp_path: Path) -> None:
             lat = stats["latency_ms"]
             assert set(lat) == {"transport", "wait", "process", "total"}
             assert 0.0 <= lat["transport"]["p50"] <= lat["total"]["p50"] <= lat["total"]["p99"]
+            # The longest tick is kept; every driver read went well.
+            assert stats["tick_ms_max"] > 0.0 and stats["slow_ticks"] >= 0
+            assert stats["read_errors"] == {}
             assert client.query("calibration")["method"] == "simulation truth"
 
             # SIGHUP with a corrupt calibration: refused, the old one stays in force.

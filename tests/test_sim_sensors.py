@@ -104,6 +104,10 @@ def test_lpf1_udp_profiles_land_on_the_ball_with_true_timing() -> None:
             return lpf1.decode_profile(m, time.monotonic_ns())
 
         profiles = _collect_udp(rx, decode, 60)
+        st = sim.stats()
+    # Sends are timed: the late ones are counted (a stalled simulator sends in a burst).
+    assert 0 <= st["sent_late_5ms"] <= st["profiles_sent"]
+    assert 0 <= st["max_send_late_us"] < 500_000
     counters = np.array([p.frame_counter for p in profiles])
     assert counters[0] < 5 and np.all(np.diff(counters) == 1)
     prof = profiles[-1]
