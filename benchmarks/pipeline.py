@@ -656,6 +656,10 @@ def measure_pipeline(
         "sim_overrun": int(s_b["overrun"] - s_a["overrun"]),
         "sim_sent_late_5ms": int(s_b.get("sent_late_5ms", 0) - s_a.get("sent_late_5ms", 0)),
         "sim_max_send_late_ms": s_b.get("max_send_late_us", 0) / 1e3,
+        "worker_cpu_pct_by_step": {
+            k: round(100.0 * (v - d_a.get("worker_cpu_s", {}).get(k, 0.0)) / active, 1)
+            for k, v in d_b.get("worker_cpu_s", {}).items()
+        },
         "daemon_slow_ticks": int(d_b.get("slow_ticks", 0)) - int(d_a.get("slow_ticks", 0)),
         "daemon_tick_ms_max": float(d_b.get("tick_ms_max", float("nan"))),
         "robot_samples_lost": int(d_b["robot"]["lost"]) - int(d_a["robot"]["lost"]),
@@ -1056,7 +1060,8 @@ def _run(
             f"simulator: overrun {r['sim_overrun']}, latest send {r['sim_max_send_late_ms']:.1f} "
             f"ms late (whole run), CPU {r['sim_sensor_cpu_pct']:.0f} %; "
             f"daemon CPU by thread (% core) "
-            f"{ {k: round(v, 1) for k, v in r['thread_cpu_pct'].items() if v >= 0.5} }; "
+            f"{ {k: round(v, 1) for k, v in r['thread_cpu_pct'].items() if v >= 0.5} }, the "
+            f"worker's by step {r['worker_cpu_pct_by_step']}; "
             f"daemon page faults {r['minor_faults_s']:.0f}/s; load {r['loadavg']:.1f}; UTC "
             f"offset drift {r['utc_offset_change_us']:.1f} us",
             flush=True,

@@ -265,6 +265,9 @@ class Pairer:
         self.waiting_for_states = 0
         """Profiles the last :meth:`poll` left waiting only for robot or table states to arrive
         (their clocks locked): a worker may wait briefly for those instead of a whole tick."""
+        self._need_ns: dict[str, int] = {}
+        """Per state stream (``robot``, ``table``): the newest device time a waiting profile
+        needs a sample at or after (see :meth:`states_cover_waiting`)."""
         self.dropped: dict[str, int] = dict.fromkeys(DROP_REASONS, 0)
         self.robot_states = 0
         self.table_states = 0
@@ -386,6 +389,7 @@ class Pairer:
         if P == 0:
             return []
         now = self._now if now_ns is None else max(int(now_ns), self._now)
+        self._need_ns = {}
         host = np.fromiter(self._p_host, np.int64, P)
         x = np.fromiter(self._p_x, np.int64, P)
         status = np.zeros(P, dtype=np.int64)
@@ -480,6 +484,7 @@ class Pairer:
         T, _, reason = self.robot.interpolate(t_robot)
         status[m] = _ROBOT_STATUS[reason]
         F[m] = T
+        self._note_need("robot", t_robot, reason)
 
     def _pair_robot_clock(self, status: IntArray, exposure: IntArray, F: FloatArray) -> None:
         m = np.flatnonzero(status == _READY)
@@ -531,6 +536,21 @@ class Pairer:
         v, _, reason = self.table.interpolate(t)
         status[m] = _TABLE_STATUS[reason]
         angle[m] = v
+        self._note_need("table", t, reason)
+
+    def _note_need(self, stream: str, t: IntArray, reason: NDArray[np.uint8]) -> None:
+        later = reason == Reason.NOT_YET
+        if later.any():
+            self._need_ns[stream] = int(t[later].max())
+
+    def states_cover_waiting(self) -> bool:
+        """Whether the states added since the last :meth:`poll` reach every profile it left
+        waiting for them: polling before would only repeat its work."""
+        for stream, need in self._need_ns.items():
+            last = (self.robot if stream == "robot" else self.table).buffer.last_ns
+            if last is None or last < need:
+                return False
+        return True
 
     def _batch(
         self,

@@ -293,6 +293,8 @@ class Pipeline:
         """Garbage collections per generation that held every thread for more than 20 ms."""
         self.slow_ticks = 0
         """Ticks that took over ``_SLOW_TICK_NS`` from start to the last publish."""
+        self._cpu_ns: Counter[str] = Counter()
+        """The worker's CPU time by step: reading the sensor, pairing, aligning, publishing."""
         self.tick_ms_max = 0.0
         self._gc_t0 = 0
         self._tick_ns = 0
@@ -356,6 +358,7 @@ class Pipeline:
             "read_errors": dict(self.read_errors),
             "gc_pauses_over_20ms": dict(self.gc_pauses),
             "slow_ticks": self.slow_ticks,
+            "worker_cpu_s": {k: round(v * 1e-9, 4) for k, v in list(self._cpu_ns.items())},
             "tick_ms_max": round(self.tick_ms_max, 3),
         }
 
@@ -437,6 +440,13 @@ class Pipeline:
         """Everything the sensor driver holds now (inline mode), into the profile queue."""
         if not self.inline_sensor:
             return
+        c0 = time.thread_time_ns()
+        try:
+            self._read_sensor_records()
+        finally:
+            self._cpu_ns["read"] += time.thread_time_ns() - c0
+
+    def _read_sensor_records(self) -> None:
         read, sink, maxsize = self.sensor.read, self._profiles, self.settings.profile_queue
         for _ in range(1_000_000):  # bounded: a flood cannot keep the worker here forever
             try:
@@ -454,6 +464,17 @@ class Pipeline:
                 self._drop_profile()
 
     def _drain(self, profiles_too: bool = True) -> None:
+        c0 = time.thread_time_ns()
+        self._drain_queues(profiles_too)
+        self._cpu_ns["pair"] += time.thread_time_ns() - c0
+
+    def _poll(self) -> list[PairedBatch]:
+        c0 = time.thread_time_ns()
+        batches = self.pairer.poll()
+        self._cpu_ns["pair"] += time.thread_time_ns() - c0
+        return batches
+
+    def _drain_queues(self, profiles_too: bool) -> None:
         pairer = self.pairer
         # States first: the profiles drained after them find their robot samples in place.
         # Only what is there now: later arrivals wait for the next tick.
@@ -472,14 +493,21 @@ class Pipeline:
         states that received profiles still need (not while stopping)."""
         self._read_sensor_inline()
         self._drain()
-        batches = self.pairer.poll()
+        batches = self._poll()
         deadline = time.monotonic() + self.settings.state_wait_s
+        unpolled = False
         while self.pairer.waiting_for_states and not stopping:
             remaining = deadline - time.monotonic()
             if remaining <= 0 or not self._states_arrived.wait(remaining):
                 break
             self._drain(profiles_too=False)
-            batches.extend(self.pairer.poll())
+            # Poll once the states reach every waiting profile, not at each state (a poll
+            # costs the same for one profile as for fifty).
+            unpolled = not self.pairer.states_cover_waiting()
+            if not unpolled:
+                batches.extend(self._poll())
+        if unpolled:
+            batches.extend(self._poll())  # what the states that came in time do cover
         return self.pairer.merge(batches) if len(batches) > 1 else batches
 
     def _emit(self, batch: PairedBatch) -> None:
@@ -492,6 +520,7 @@ class Pipeline:
         setup = self._setup
         valid = batch.valid
         frame = setup.frame
+        c0 = time.thread_time_ns()
         xyz = align.align(
             batch.y,
             batch.z,
@@ -511,7 +540,10 @@ class Pipeline:
         pidx = batch.profile_index[valid] if s.publish_profile_index else None
         t_first = int(batch.exposure_ns.min()) + self._utc_offset_ns
         t_last = int(batch.exposure_ns.max()) + self._utc_offset_ns
+        c1 = time.thread_time_ns()
         self._publish(xyz, t_first, t_last, batch.n_profiles, frame, intensity, pidx)
+        self._cpu_ns["align"] += c1 - c0
+        self._cpu_ns["publish"] += time.thread_time_ns() - c1
         if batch.arrival_ns is not None:
             self.latency.add(
                 batch.exposure_ns, batch.arrival_ns, self._tick_ns, time.monotonic_ns()

@@ -478,3 +478,34 @@ def test_merge_joins_batches_in_order_up_to_the_profile_limit() -> None:
     assert m.profile_index.tolist() == [0, 0, 1, 1, 1, 2]
     assert m.y.tolist() == [0, 1, 2, 3, 4, 200]
     assert merged[1].offsets.tolist() == [0, 4, 5, 7]
+
+
+def test_states_cover_waiting_tells_when_a_poll_can_release_the_waiting_profiles() -> None:
+    cell = make_cell(seconds=1.0, seed=3)
+    records = cell.sorted()
+    profiles = [r for r in records if isinstance(r, Profile)]
+    states = [r for r in records if isinstance(r, RobotState)]
+    p = Pairer(config())
+    # Everything up to 0.6 s, then the profiles up to 0.8 s without their robot states.
+    cut, later = T0 + 600 * MS, T0 + 800 * MS
+    for r in records:
+        if r.host_time_ns < cut or (isinstance(r, Profile) and r.host_time_ns < later):
+            if isinstance(r, Profile):
+                p.add_profile(r)
+            else:
+                p.add_robot_state(r)  # type: ignore[arg-type]
+    p.poll()
+    assert p.waiting_for_states > 0
+    assert not p.states_cover_waiting()
+    waiting = p.waiting_for_states
+    # The states of the next 0.1 s release some profiles, not all: still not covered.
+    for s in (s for s in states if cut <= s.host_time_ns < cut + 100 * MS):
+        p.add_robot_state(s)
+    assert not p.states_cover_waiting()
+    # Those up to 0.8 s and a little beyond (the state after the last exposure) cover them.
+    for s in (s for s in states if cut + 100 * MS <= s.host_time_ns < later + 10 * MS):
+        p.add_robot_state(s)
+    assert p.states_cover_waiting()
+    released = sum(b.n_profiles for b in p.poll())
+    assert released >= waiting and p.waiting_for_states == 0
+    assert len([q for q in profiles if q.host_time_ns < later]) == p.paired
