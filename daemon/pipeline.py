@@ -202,8 +202,8 @@ class _Reader(Generic[T]):
                     continue
                 if len(sink) < maxsize:
                     sink.append(rec)
-                    if signal is not None:
-                        signal.set()
+                    if signal is not None and not signal.is_set():
+                        signal.set()  # (set() takes a lock and notifies even when set)
                 else:
                     self._on_drop()
         except BaseException as exc:

@@ -1088,6 +1088,7 @@ class URRobot(Robot):
         # receive side
         self._rx: _Rx | None = None
         self._rx_lock = threading.Lock()
+        self._next_supervise = 0.0
         self._rx_backoff = Backoff(backoff_initial_s, backoff_max_s)
         self._rx_restart_at: float | None = None
         self._rx_ever_up = False
@@ -1353,7 +1354,10 @@ class URRobot(Robot):
                 if supervise or rx.state not in ("down", "failed"):
                     self._rx_died("ended")
                 return
-            if supervise:
+            now = time.monotonic()
+            if supervise and now >= self._next_supervise:
+                # A child's death shows within 50 ms; not a wait() system call per sample.
+                self._next_supervise = now + 0.05
                 self._supervise_rx(rx)
         finally:
             self._rx_lock.release()
