@@ -660,6 +660,9 @@ def measure_pipeline(
             k: round(100.0 * (v - d_a.get("worker_cpu_s", {}).get(k, 0.0)) / active, 1)
             for k, v in d_b.get("worker_cpu_s", {}).items()
         },
+        "state_wait_ms_per_tick": 1e3
+        * (d_b.get("state_waited_s", 0.0) - d_a.get("state_waited_s", 0.0))
+        / max(active / 0.010, 1.0),
         "daemon_slow_ticks": int(d_b.get("slow_ticks", 0)) - int(d_a.get("slow_ticks", 0)),
         "daemon_tick_ms_max": float(d_b.get("tick_ms_max", float("nan"))),
         "robot_samples_lost": int(d_b["robot"]["lost"]) - int(d_a["robot"]["lost"]),
@@ -1061,7 +1064,8 @@ def _run(
             f"ms late (whole run), CPU {r['sim_sensor_cpu_pct']:.0f} %; "
             f"daemon CPU by thread (% core) "
             f"{ {k: round(v, 1) for k, v in r['thread_cpu_pct'].items() if v >= 0.5} }, the "
-            f"worker's by step {r['worker_cpu_pct_by_step']}; "
+            f"worker's by step {r['worker_cpu_pct_by_step']}; waiting for states "
+            f"{r['state_wait_ms_per_tick']:.2f} ms per tick; "
             f"daemon page faults {r['minor_faults_s']:.0f}/s; load {r['loadavg']:.1f}; UTC "
             f"offset drift {r['utc_offset_change_us']:.1f} us",
             flush=True,

@@ -293,6 +293,8 @@ class Pipeline:
         """Garbage collections per generation that held every thread for more than 20 ms."""
         self.slow_ticks = 0
         """Ticks that took over ``_SLOW_TICK_NS`` from start to the last publish."""
+        self.state_waited_s = 0.0
+        """Wall time the worker spent at ticks waiting for the states of received profiles."""
         self._cpu_ns: Counter[str] = Counter()
         """The worker's CPU time by step: reading the sensor, pairing, aligning, publishing."""
         self.tick_ms_max = 0.0
@@ -358,6 +360,7 @@ class Pipeline:
             "read_errors": dict(self.read_errors),
             "gc_pauses_over_20ms": dict(self.gc_pauses),
             "slow_ticks": self.slow_ticks,
+            "state_waited_s": round(self.state_waited_s, 4),
             "worker_cpu_s": {k: round(v * 1e-9, 4) for k, v in list(self._cpu_ns.items())},
             "tick_ms_max": round(self.tick_ms_max, 3),
         }
@@ -494,7 +497,8 @@ class Pipeline:
         self._read_sensor_inline()
         self._drain()
         batches = self._poll()
-        deadline = time.monotonic() + self.settings.state_wait_s
+        t0 = time.monotonic()
+        deadline = t0 + self.settings.state_wait_s
         unpolled = False
         while self.pairer.waiting_for_states and not stopping:
             remaining = deadline - time.monotonic()
@@ -508,6 +512,7 @@ class Pipeline:
                 batches.extend(self._poll())
         if unpolled:
             batches.extend(self._poll())  # what the states that came in time do cover
+        self.state_waited_s += time.monotonic() - t0
         return self.pairer.merge(batches) if len(batches) > 1 else batches
 
     def _emit(self, batch: PairedBatch) -> None:
