@@ -179,17 +179,41 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
+_SPLIT_CORES = False
+"""``--split-cores``: the simulated cell on the last CPU, the daemon, the subscriber (and the
+raw zenoh processes) on the others, as on a cell PC whose sensor and controller are machines of
+their own."""
+
+
+def _cell_cpus() -> set[int]:
+    return {max(os.sched_getaffinity(0) | _all_cpus())}
+
+
+def _all_cpus() -> set[int]:
+    return set(range(os.cpu_count() or 1))
+
+
+def _pin_away_from_cell(pid: int) -> None:
+    """Keep ``pid`` (threads it starts later too) off the cell's CPU with ``--split-cores``."""
+    if _SPLIT_CORES:
+        others = _all_cpus() - _cell_cpus()
+        if others:
+            os.sched_setaffinity(pid, others)
+
+
 def _spawn(*args: str, stdin: bool = True) -> subprocess.Popen[str]:
     # A session of its own: with the kernel's autogroup scheduling (Linux default for
     # desktop-style kernels) each session is one scheduling entity, as a systemd unit is one
     # cgroup; a process in the benchmark's session would share one entity with the simulator.
-    return subprocess.Popen(
+    proc = subprocess.Popen(
         [sys.executable, str(HERE), *args],
         stdin=subprocess.PIPE if stdin else subprocess.DEVNULL,
         stdout=subprocess.PIPE,
         text=True,
         start_new_session=True,
     )
+    _pin_away_from_cell(proc.pid)
+    return proc
 
 
 def _expect_line(proc: subprocess.Popen[str], what: str) -> str:
@@ -467,6 +491,8 @@ def measure_pipeline(
     cfg_path.write_text(dump_toml(doc))
     cfg = load_config(cfg_path)
     endpoint = cfg.zenoh.listen[0]
+    if _SPLIT_CORES:
+        os.sched_setaffinity(0, _cell_cpus())  # the cell's processes inherit it
     cell = start_cell(cfg)
     notify = _Notify(tmp / "notify.sock")
     daemon: subprocess.Popen[bytes] | None = None
@@ -505,6 +531,7 @@ def measure_pipeline(
                 stderr=subprocess.STDOUT,
                 start_new_session=True,  # its own scheduling entity, as under systemd
             )
+        _pin_away_from_cell(daemon.pid)
         if nice is not None:
             _set_session_nice(daemon.pid, nice)
         try:
@@ -1098,6 +1125,15 @@ def _run(
     figures.append(Figure("nice value of the daemon", nice or 0, "", "-", None))
     figures.append(
         Figure(
+            "simulated cell on a CPU of its own (--split-cores)",
+            int(_SPLIT_CORES),
+            "",
+            "-",
+            None,
+        )
+    )
+    figures.append(
+        Figure(
             "nice value of the simulated cell", os.getpriority(os.PRIO_PROCESS, 0), "", "-", None
         )
     )
@@ -1143,7 +1179,18 @@ def main(argv: list[str] | None = None) -> int:
         "in for the sensor's and the controller's own processors, which do not take CPU from "
         "the daemon on a real cell",
     )
+    ap.add_argument(
+        "--split-cores",
+        action=argparse.BooleanOptionalAction,
+        default=(os.cpu_count() or 1) >= 2,
+        help="run the simulated cell on the last CPU and the daemon, the subscriber and the "
+        "raw zenoh processes on the others (default with 2 CPUs or more): on a real cell the "
+        "sensor and the controller are machines of their own; --no-split-cores lets them "
+        "compete for every CPU",
+    )
     ns = ap.parse_args(args)
+    global _SPLIT_CORES
+    _SPLIT_CORES = bool(ns.split_cores)
     rates = tuple(float(x) for x in ns.rates.split(","))
     return run(
         rates,
