@@ -183,22 +183,15 @@ _SPLIT_CORES = False
 """``--split-cores``: the simulated cell on the last CPU, the daemon, the subscriber (and the
 raw zenoh processes) on the others, as on a cell PC whose sensor and controller are machines of
 their own."""
-
-
-def _cell_cpus() -> set[int]:
-    return {max(os.sched_getaffinity(0) | _all_cpus())}
-
-
-def _all_cpus() -> set[int]:
-    return set(range(os.cpu_count() or 1))
+_CPUS = frozenset(os.sched_getaffinity(0))
+"""The CPUs this benchmark may use (read before it pins itself to the cell's)."""
+_CELL_CPUS = {max(_CPUS)}
 
 
 def _pin_away_from_cell(pid: int) -> None:
     """Keep ``pid`` (threads it starts later too) off the cell's CPU with ``--split-cores``."""
     if _SPLIT_CORES:
-        others = _all_cpus() - _cell_cpus()
-        if others:
-            os.sched_setaffinity(pid, others)
+        os.sched_setaffinity(pid, _CPUS - _CELL_CPUS)
 
 
 def _spawn(*args: str, stdin: bool = True) -> subprocess.Popen[str]:
@@ -492,7 +485,7 @@ def measure_pipeline(
     cfg = load_config(cfg_path)
     endpoint = cfg.zenoh.listen[0]
     if _SPLIT_CORES:
-        os.sched_setaffinity(0, _cell_cpus())  # the cell's processes inherit it
+        os.sched_setaffinity(0, _CELL_CPUS)  # the cell's processes inherit it
     cell = start_cell(cfg)
     notify = _Notify(tmp / "notify.sock")
     daemon: subprocess.Popen[bytes] | None = None
@@ -689,7 +682,7 @@ def measure_pipeline(
         },
         "state_wait_ms_per_tick": 1e3
         * (d_b.get("state_waited_s", 0.0) - d_a.get("state_waited_s", 0.0))
-        / max(active / 0.010, 1.0),
+        / max(active / cfg.pipeline.batch_s, 1.0),
         "daemon_slow_ticks": int(d_b.get("slow_ticks", 0)) - int(d_a.get("slow_ticks", 0)),
         "daemon_tick_ms_max": float(d_b.get("tick_ms_max", float("nan"))),
         "robot_samples_lost": int(d_b["robot"]["lost"]) - int(d_a["robot"]["lost"]),
@@ -1182,7 +1175,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--split-cores",
         action=argparse.BooleanOptionalAction,
-        default=(os.cpu_count() or 1) >= 2,
+        default=len(_CPUS) >= 2,
         help="run the simulated cell on the last CPU and the daemon, the subscriber and the "
         "raw zenoh processes on the others (default with 2 CPUs or more): on a real cell the "
         "sensor and the controller are machines of their own; --no-split-cores lets them "
@@ -1190,7 +1183,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     ns = ap.parse_args(args)
     global _SPLIT_CORES
-    _SPLIT_CORES = bool(ns.split_cores)
+    _SPLIT_CORES = bool(ns.split_cores) and len(_CPUS) >= 2
     rates = tuple(float(x) for x in ns.rates.split(","))
     return run(
         rates,

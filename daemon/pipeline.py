@@ -135,6 +135,26 @@ class LatencyWindow:
         }
 
 
+class _StepCpu:
+    """Adds the calling thread's CPU time inside ``with`` to one step's total (ns). One object
+    per step, reused: no allocation on the worker's path; steps do not nest."""
+
+    __slots__ = ("_t0", "ns")
+
+    def __init__(self) -> None:
+        self.ns = 0
+        self._t0 = 0
+
+    def __enter__(self) -> None:
+        self._t0 = time.thread_time_ns()
+
+    def __exit__(self, *exc: object) -> None:
+        self.ns += time.thread_time_ns() - self._t0
+
+
+_STEPS = ("read", "pair", "align", "publish")
+
+
 def _name_os_thread(name: str) -> None:
     """Give the calling thread its name at the OS level too (Linux, 15 bytes), so that
     ``top -H``, ``ps -L`` and ``/proc/<pid>/task/*/comm`` tell the pipeline's threads apart."""
@@ -254,8 +274,8 @@ class Pipeline:
         self._failure: BaseException | None = None
         self._last_progress_ns = time.monotonic_ns()
         self._utc_offset_ns = time.time_ns() - time.monotonic_ns()
-        self._kernel_stamps = sensor.stamped_on_receipt
-        self.inline_sensor = self._kernel_stamps if s.inline_sensor is None else s.inline_sensor
+        self._sensor_stamped = sensor.stamped_on_receipt
+        self.inline_sensor = self._sensor_stamped if s.inline_sensor is None else s.inline_sensor
         self.read_errors: Counter[str] = Counter()
         """Driver errors met while reading inline, by device (the drivers reconnect)."""
         self._readers: list[_Reader[Any]] = []
@@ -295,7 +315,7 @@ class Pipeline:
         """Ticks that took over ``_SLOW_TICK_NS`` from start to the last publish."""
         self.state_waited_s = 0.0
         """Wall time the worker spent at ticks waiting for the states of received profiles."""
-        self._cpu_ns: Counter[str] = Counter()
+        self._cpu = {step: _StepCpu() for step in _STEPS}
         """The worker's CPU time by step: reading the sensor, pairing, aligning, publishing."""
         self.tick_ms_max = 0.0
         self._gc_t0 = 0
@@ -361,7 +381,7 @@ class Pipeline:
             "gc_pauses_over_20ms": dict(self.gc_pauses),
             "slow_ticks": self.slow_ticks,
             "state_waited_s": round(self.state_waited_s, 4),
-            "worker_cpu_s": {k: round(v * 1e-9, 4) for k, v in list(self._cpu_ns.items())},
+            "worker_cpu_s": {k: round(c.ns * 1e-9, 4) for k, c in self._cpu.items()},
             "tick_ms_max": round(self.tick_ms_max, 3),
         }
 
@@ -411,7 +431,7 @@ class Pipeline:
     def start(self) -> None:
         gc.callbacks.append(self._on_gc)
         interval = self.settings.gil_switch_interval_s
-        if interval is not None and not self._kernel_stamps:
+        if interval is not None and not self._sensor_stamped:
             self._saved_switch_interval = sys.getswitchinterval()
             sys.setswitchinterval(min(interval, self._saved_switch_interval))
         self._started = True
@@ -443,53 +463,41 @@ class Pipeline:
         """Everything the sensor driver holds now (inline mode), into the profile queue."""
         if not self.inline_sensor:
             return
-        c0 = time.thread_time_ns()
-        try:
-            self._read_sensor_records()
-        finally:
-            self._cpu_ns["read"] += time.thread_time_ns() - c0
-
-    def _read_sensor_records(self) -> None:
         read, sink, maxsize = self.sensor.read, self._profiles, self.settings.profile_queue
-        for _ in range(1_000_000):  # bounded: a flood cannot keep the worker here forever
-            try:
-                rec = read(timeout=0.0)
-            except DriverError as exc:
-                # The driver reconnects by itself; the next step tries again.
-                self.read_errors[self.sensor.kind] += 1
-                log.warning("%s: %s", self.sensor.kind, exc)
-                return
-            if rec is None:
-                return
-            if len(sink) < maxsize:
-                sink.append(rec)
-            else:
-                self._drop_profile()
+        with self._cpu["read"]:
+            for _ in range(1_000_000):  # bounded: a flood cannot keep the worker here forever
+                try:
+                    rec = read(timeout=0.0)
+                except DriverError as exc:
+                    # The driver reconnects by itself; the next step tries again.
+                    self.read_errors[self.sensor.kind] += 1
+                    log.warning("%s: %s", self.sensor.kind, exc)
+                    return
+                if rec is None:
+                    return
+                if len(sink) < maxsize:
+                    sink.append(rec)
+                else:
+                    self._drop_profile()
 
     def _drain(self, profiles_too: bool = True) -> None:
-        c0 = time.thread_time_ns()
-        self._drain_queues(profiles_too)
-        self._cpu_ns["pair"] += time.thread_time_ns() - c0
-
-    def _poll(self) -> list[PairedBatch]:
-        c0 = time.thread_time_ns()
-        batches = self.pairer.poll()
-        self._cpu_ns["pair"] += time.thread_time_ns() - c0
-        return batches
-
-    def _drain_queues(self, profiles_too: bool) -> None:
         pairer = self.pairer
         # States first: the profiles drained after them find their robot samples in place.
         # Only what is there now: later arrivals wait for the next tick.
         self._states_arrived.clear()
         robot, table, profiles = self._robot_q, self._table_q, self._profiles
-        for _ in range(len(robot)):
-            pairer.add_robot_state(robot.popleft())
-        for _ in range(len(table)):
-            pairer.add_table_state(table.popleft())
-        if profiles_too:
-            for _ in range(len(profiles)):
-                pairer.add_profile(profiles.popleft())
+        with self._cpu["pair"]:
+            for _ in range(len(robot)):
+                pairer.add_robot_state(robot.popleft())
+            for _ in range(len(table)):
+                pairer.add_table_state(table.popleft())
+            if profiles_too:
+                for _ in range(len(profiles)):
+                    pairer.add_profile(profiles.popleft())
+
+    def _poll(self) -> list[PairedBatch]:
+        with self._cpu["pair"]:
+            return self.pairer.poll()
 
     def _pair(self, stopping: bool) -> list[PairedBatch]:
         """This tick's batches: pair what arrived, then wait up to ``state_wait_s`` for the
@@ -525,30 +533,30 @@ class Pipeline:
         setup = self._setup
         valid = batch.valid
         frame = setup.frame
-        c0 = time.thread_time_ns()
-        xyz = align.align(
-            batch.y,
-            batch.z,
-            batch.profile_index,
-            batch.flange2base,
-            setup.sensor2flange,
-            base2table=setup.base2table if frame != "base" else None,
-            table_angle_rad=batch.table_angle if frame == "part" else None,
-            encoder_offset_rad=setup.encoder_offset_rad,
-            frame=frame,  # type: ignore[arg-type]
-            mask=valid,
-        )
         s = self.settings
-        intensity = (
-            batch.intensity[valid] if s.publish_intensity and batch.intensity is not None else None
-        )
-        pidx = batch.profile_index[valid] if s.publish_profile_index else None
+        with self._cpu["align"]:
+            xyz = align.align(
+                batch.y,
+                batch.z,
+                batch.profile_index,
+                batch.flange2base,
+                setup.sensor2flange,
+                base2table=setup.base2table if frame != "base" else None,
+                table_angle_rad=batch.table_angle if frame == "part" else None,
+                encoder_offset_rad=setup.encoder_offset_rad,
+                frame=frame,  # type: ignore[arg-type]
+                mask=valid,
+            )
+            intensity = (
+                batch.intensity[valid]
+                if s.publish_intensity and batch.intensity is not None
+                else None
+            )
+            pidx = batch.profile_index[valid] if s.publish_profile_index else None
         t_first = int(batch.exposure_ns.min()) + self._utc_offset_ns
         t_last = int(batch.exposure_ns.max()) + self._utc_offset_ns
-        c1 = time.thread_time_ns()
-        self._publish(xyz, t_first, t_last, batch.n_profiles, frame, intensity, pidx)
-        self._cpu_ns["align"] += c1 - c0
-        self._cpu_ns["publish"] += time.thread_time_ns() - c1
+        with self._cpu["publish"]:
+            self._publish(xyz, t_first, t_last, batch.n_profiles, frame, intensity, pidx)
         if batch.arrival_ns is not None:
             self.latency.add(
                 batch.exposure_ns, batch.arrival_ns, self._tick_ns, time.monotonic_ns()
