@@ -101,6 +101,10 @@ FloatArray = NDArray[np.float64]
 # hull edge is taken from the two active points.
 _BISECT_ITERATIONS = 40
 _PRUNE_AFTER = 10
+_CHECK_EVERY = 3
+# A warm start brackets the previous slope by this much (2 ppm: successive fits of a window
+# differ by far less; the edges at the quartiles by about that).
+_WARM_HALF_WIDTH = 2e-6
 # The uncertainty is the RMS of the split differences of this many recent refits.
 _U_HISTORY = 16
 # Recent arrivals an arrival below the line is compared with (jump or descending floor).
@@ -557,13 +561,13 @@ class ClockMapper:
         f = cfg.eval_fraction
         x0 = float(X.min())
         x_e = x0 + f * span
-        d = _support_slope(X, R, x_e, lo, hi)
+        d = _support_slope(X, R, x_e, lo, hi, None if self._line is None else self._line.d)
         # Uncertainty: the same estimator on the even and on the odd buckets gives two
         # independent half-data estimates; half their difference is of the order of the full
         # estimate's error whatever the delay distribution. Windowed RMS: one split is a noisy
         # scale; old (early, poor) fits drop out.
-        d1 = _support_slope(X[0::2], R[0::2], x_e, lo, hi)
-        d2 = _support_slope(X[1::2], R[1::2], x_e, lo, hi)
+        d1 = _support_slope(X[0::2], R[0::2], x_e, lo, hi, d)
+        d2 = _support_slope(X[1::2], R[1::2], x_e, lo, hi, d)
         v1 = float((R[0::2] - d1 * X[0::2]).min()) + d1 * x_e
         v2 = float((R[1::2] - d2 * X[1::2]).min()) + d2 * x_e
         dv = 0.5 * (v1 - v2)
@@ -584,7 +588,7 @@ class ClockMapper:
         # The edges spanning the quartiles then disagree by more than the noise: the data do
         # not determine the drift, so it stays where it was (a clock's drift changes slowly).
         xq = (x0 + max(f - 0.25, 0.0) * span, x0 + min(f + 0.25, 1.0) * span)
-        dq = (_support_slope(X, R, xq[0], lo, hi), _support_slope(X, R, xq[1], lo, hi))
+        dq = (_support_slope(X, R, xq[0], lo, hi, d), _support_slope(X, R, xq[1], lo, hi, d))
         if abs(dq[0] - dq[1]) > max(6.0 * u_slope, 0.01 * cfg.typical_drift):
             ref = self._line.d if self._line is not None else pd
             G = R - ref * X
@@ -681,28 +685,53 @@ class ClockMapper:
         }
 
 
-def _support_slope(X: FloatArray, R: FloatArray, x_e: float, lo: float, hi: float) -> float:
+def _support_slope(
+    X: FloatArray, R: FloatArray, x_e: float, lo: float, hi: float, guess: float | None = None
+) -> float:
     """Slope of the highest line at ``x_e`` lying below all points ``(X, R)``.
 
     ``f(d) = min_i R_i + d (x_e - X_i)`` is concave; its supergradient at ``d`` is ``x_e - X_i*``
     of the active point, so bisection on its sign finds the maximiser: the lower-hull edge
-    spanning ``x_e``. Slopes outside ``[lo, hi]`` are clipped to the range.
+    spanning ``x_e``. Slopes outside ``[lo, hi]`` are clipped to the range. ``guess``: a slope
+    near the answer (the previous fit's); when ``guess +- _WARM_HALF_WIDTH`` brackets the
+    answer, the search starts there with the points pruned at once (same edge, a third of the
+    passes over the whole window).
     """
     span = float(X.max() - X.min())
+    pruned = False
+    if guess is not None:
+        a, b = max(lo, guess - _WARM_HALF_WIDTH), min(hi, guess + _WARM_HALF_WIDTH)
+        Ga = R - a * X
+        ia = int(Ga.argmin())
+        if a < b and X[ia] <= x_e and X[int((R - b * X).argmin())] > x_e:
+            lo, hi = a, b
+            keep = Ga - Ga[ia] <= (hi - lo) * span + 1.0  # as the pruning below, at slope lo
+            X, R = X[keep], R[keep]
+            pruned = True
+    il = ir = -1  # active points at lo and hi once pruned
     for it in range(_BISECT_ITERATIONS):
         d = 0.5 * (lo + hi)
         G = R - d * X
         i = int(G.argmin())
         if X[i] > x_e:
-            hi = d
+            hi, ir = d, i
         else:
-            lo = d
-        if it == _PRUNE_AFTER:
+            lo, il = d, i
+        if not pruned and it == _PRUNE_AFTER:
             # Only points within (hi - lo) * span of the envelope at slope d (an end of the new
             # interval) can be active anywhere in [lo, hi]: drop the rest, the remaining
             # halvings get cheap.
             keep = G - G[i] <= (hi - lo) * span + 1.0
             X, R = X[keep], R[keep]
+            il = ir = -1
+            pruned = True
+        elif pruned and il >= 0 and ir >= 0 and it % _CHECK_EVERY == 0:
+            # Done once the chord of the two active points is a supporting line: it touches the
+            # envelope on both sides of x_e, so it is the edge the halvings converge to (they
+            # take ~40 steps; the edge is usually isolated after ~15).
+            s = float((R[ir] - R[il]) / (X[ir] - X[il]))
+            if lo <= s <= hi and float((R - s * X).min()) >= float(R[il] - s * X[il]) - 1.0:
+                return s
     # The two active points of the final interval give the edge exactly.
     il = int((R - lo * X).argmin())
     ir = int((R - hi * X).argmin())

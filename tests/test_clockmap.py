@@ -380,3 +380,28 @@ def test_clock_jumps_are_still_detected_under_load() -> None:
     assert np.all(epochs[:k1] == 0) and np.all(epochs[k1 + 5 : k2] == 1)
     err = cm.to_host(dev[-500:]) - truth[-500:]
     assert np.max(np.abs(err)) < 30_000
+
+
+def test_slope_search_finds_the_hull_edge_with_or_without_a_warm_start() -> None:
+    # The fit's slope is the lower-hull edge spanning x_e. Brute force: the lowest chord at x_e
+    # between a point on each side (every chord lies on or above the hull there). The search
+    # must find that edge from the full range, from a good guess and from a guess too far off
+    # to bracket it (then it falls back to the full range).
+    from wristscan.daemon.clockmap import _support_slope
+
+    dev, host, _ = synth(30.0, rate_hz=1000.0, jitter="gamma", jitter_ns=0.2e6, spikes=0.02)
+    cm = ClockMapper()
+    cm.feed_many(dev, host)
+    X, R = cm._points()
+    assert X.shape[0] > 2500
+    for f in np.linspace(0.03, 0.97, 25):
+        x_e = float(X.min() + f * (X.max() - X.min()))
+        left, right = X <= x_e, X > x_e
+        xl, rl = X[left][:, None], R[left][:, None]
+        xr, rr = X[right][None, :], R[right][None, :]
+        slope = (rr - rl) / (xr - xl)
+        k = np.unravel_index(np.argmin(rl + slope * (x_e - xl)), slope.shape)
+        edge = float(slope[k])
+        for guess in (None, cm.drift, cm.drift + 1.9e-6, cm.drift + 50e-6):
+            got = _support_slope(X, R, x_e, -1e-3, 1e-3, guess)
+            assert got == pytest.approx(edge, rel=0, abs=1e-12), (f, guess)
