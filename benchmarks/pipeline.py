@@ -33,8 +33,13 @@ in-process (LPF1 parse + decode, pairing, alignment, WSC1 encoding) on synthetic
 the host allows: the delay from kernel arrival (``SO_TIMESTAMPNS``) to user-space stamp of a bare
 Python UDP receiver at each rate.
 
+As root, the daemon (and the subscriber) run at the ``Nice=`` of ``systemd/wristscan.service``,
+as the unit runs it. ``--load N`` adds N busy processes of default priority, each a session of
+its own, on the daemon's CPUs: other work on the cell PC.
+
 Run: ``.venv/bin/python benchmarks/pipeline.py [--duration 20] [--rates 1000,5000]
-[--json out.json] [--workdir DIR] [--profile PREFIX]``; exits 1 when a target is missed. Targets
+[--json out.json] [--workdir DIR] [--profile PREFIX] [--load N]``; exits 1 when a target is
+missed. Targets
 (every rate): no profile lost, no batch lost, published/sent >= 0.99, latency p99 <= 20 ms.
 Figures and their discussion: docs/pipeline.md.
 """
@@ -61,6 +66,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from _report import Figure, report
 
 HERE = Path(__file__).resolve()
+UNIT = HERE.parent.parent / "systemd" / "wristscan.service"
 MS = 1_000_000
 P99_TARGET_MS = 20.0
 PAUSE_S = 1.5
@@ -291,6 +297,35 @@ def _set_session_nice(pid: int, nice: int) -> None:
         group.write_text(str(nice))
 
 
+def _unit_nice() -> int:
+    """The ``Nice=`` of the systemd unit (0 if it sets none)."""
+    for line in UNIT.read_text().splitlines():
+        key, _, value = line.strip().partition("=")
+        if key == "Nice":
+            return int(value)
+    return 0
+
+
+class _BusyLoad:
+    """``n`` busy processes at nice 0, each a session of its own (one scheduling entity, as a
+    service is), kept off the simulated cell's CPU: other work on the daemon's CPUs."""
+
+    def __init__(self, n: int) -> None:
+        self.procs: list[subprocess.Popen[bytes]] = []
+        for _ in range(n):
+            p = subprocess.Popen([sys.executable, "-c", "while True: pass"], start_new_session=True)
+            self.procs.append(p)
+            _pin_away_from_cell(p.pid)
+            _set_session_nice(p.pid, 0)
+
+    def close(self) -> None:
+        for p in self.procs:
+            p.kill()
+        for p in self.procs:
+            p.wait(10)
+        self.procs = []
+
+
 def _machine_ticks() -> tuple[int, int]:
     """(busy, total) clock ticks of all CPUs since boot (``/proc/stat``)."""
     f = [int(v) for v in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
@@ -450,10 +485,11 @@ def measure_pipeline(
     workdir: Path | None = None,
     profile_out: str | None = None,
     nice: int | None = None,
+    load: int = 0,
 ) -> dict[str, Any]:
     """Run the cell + daemon + subscriber at ``rate_hz`` and return the window's figures.
     ``profile_out``: sample the daemon with py-spy (if installed) over the window, folded
-    stacks written there."""
+    stacks written there. ``load``: busy processes beside the daemon (:class:`_BusyLoad`)."""
     from wristscan.calib import kinematics, se3
     from wristscan.daemon.calibfile import (
         Calibration,
@@ -491,7 +527,9 @@ def measure_pipeline(
     daemon: subprocess.Popen[bytes] | None = None
     sub: subprocess.Popen[str] | None = None
     log_path = tmp / "daemon.log"
+    busy: _BusyLoad | None = None
     try:
+        busy = _BusyLoad(load)
         s2f = np.array(cell.truth()["sensor2flange"])
         write_calibration(
             tmp / "sensor2flange.json",
@@ -607,6 +645,8 @@ def measure_pipeline(
                 except subprocess.TimeoutExpired:
                     proc.kill()
                     proc.wait()
+        if busy is not None:
+            busy.close()
         cell.stop()
         notify.close()
     active = (t_end - t_resume) * 1e-9  # the sensor sent during this span
@@ -652,6 +692,7 @@ def measure_pipeline(
     result = {
         "rate_hz": rate_hz,
         "n_points": n_points,
+        "busy_load": load,
         "window_s": active,
         "emitted_profiles_s": sent / active,
         "published_profiles_s": published / active,
@@ -932,6 +973,7 @@ def run(
     workdir: str | None = None,
     nice: int | None = None,
     cell_nice: int | None = None,
+    load: int = 0,
 ) -> int:
     """Measure every rate, print the figures beside their targets; 1 if a target is missed.
     ``nice``: run the daemon's session, the subscriber's and this one (the simulated cell) at
@@ -939,7 +981,7 @@ def run(
     gets the CPU it asks for on a busy machine, as a production unit can arrange with
     ``Nice=``. ``cell_nice``: this session (the simulated cell, a stand-in for the sensor's and
     the controller's own processors) at that value instead, the daemon and the subscriber at
-    ``nice`` (0 if None)."""
+    ``nice`` (0 if None). ``load``: busy processes beside the daemon (:class:`_BusyLoad`)."""
     own_nice = cell_nice if cell_nice is not None else nice
     if cell_nice is not None and nice is None:
         nice = 0
@@ -958,13 +1000,23 @@ def run(
                 profile_out,
                 workdir,
                 nice,
+                load,
             )
         finally:
             os.setpriority(os.PRIO_PROCESS, 0, 0)
             if saved is not None:
                 own.write_text(str(saved))
     return _run(
-        rates_hz, duration_s, n_points, warmup_s, raw_runs, json_out, profile_out, workdir, None
+        rates_hz,
+        duration_s,
+        n_points,
+        warmup_s,
+        raw_runs,
+        json_out,
+        profile_out,
+        workdir,
+        None,
+        load,
     )
 
 
@@ -978,6 +1030,7 @@ def _run(
     profile_out: str | None,
     workdir: str | None,
     nice: int | None,
+    load: int,
 ) -> int:
     figures: list[Figure] = []
     details: list[dict[str, Any]] = []
@@ -987,7 +1040,7 @@ def _run(
         if workdir is not None:
             wd = Path(workdir) / f"{int(rate)}"
             wd.mkdir(parents=True, exist_ok=True)
-        r = measure_pipeline(rate, duration_s, n_points, warmup_s, wd, prof, nice)
+        r = measure_pipeline(rate, duration_s, n_points, warmup_s, wd, prof, nice, load)
         size = int(r["mean_payload_bytes"])
         if size <= 0:  # nothing was published: the nominal batch (10 ms ticks) instead
             size = 64 + 12 * n_points * max(1, round(rate * 0.010))
@@ -1116,6 +1169,7 @@ def _run(
         ]
     figures.append(Figure("host: load average (1 min)", os.getloadavg()[0], "", "-", None))
     figures.append(Figure("nice value of the daemon", nice or 0, "", "-", None))
+    figures.append(Figure("busy processes beside the daemon (--load)", load, "", "-", None))
     figures.append(
         Figure(
             "simulated cell on a CPU of its own (--split-cores)",
@@ -1161,8 +1215,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--nice",
         type=int,
-        default=None,
-        help="run the daemon, subscriber and cell at this nice value (root)",
+        default=_unit_nice() if os.geteuid() == 0 else None,
+        help="run the daemon and the subscriber at this nice value (root; default as root: the "
+        "Nice= of systemd/wristscan.service, as the unit runs the daemon)",
+    )
+    ap.add_argument(
+        "--load",
+        type=int,
+        default=0,
+        help="busy processes of default priority beside the daemon, each a session of its own "
+        "(other work on the cell PC)",
     )
     ap.add_argument(
         "--cell-nice",
@@ -1196,6 +1258,7 @@ def main(argv: list[str] | None = None) -> int:
         ns.workdir,
         ns.nice,
         ns.cell_nice,
+        ns.load,
     )
 
 
