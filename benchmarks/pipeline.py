@@ -985,39 +985,18 @@ def run(
     own_nice = cell_nice if cell_nice is not None else nice
     if cell_nice is not None and nice is None:
         nice = 0
-    if own_nice is not None:
-        own = Path("/proc/self/autogroup")
-        saved = int(own.read_text().split()[-1]) if own.exists() else None
-        _set_session_nice(os.getpid(), own_nice)
-        try:
-            return _run(
-                rates_hz,
-                duration_s,
-                n_points,
-                warmup_s,
-                raw_runs,
-                json_out,
-                profile_out,
-                workdir,
-                nice,
-                load,
-            )
-        finally:
-            os.setpriority(os.PRIO_PROCESS, 0, 0)
-            if saved is not None:
-                own.write_text(str(saved))
-    return _run(
-        rates_hz,
-        duration_s,
-        n_points,
-        warmup_s,
-        raw_runs,
-        json_out,
-        profile_out,
-        workdir,
-        None,
-        load,
-    )
+    args = (rates_hz, duration_s, n_points, warmup_s, raw_runs, json_out, profile_out, workdir)
+    if own_nice is None:  # then nice is None too
+        return _run(*args, nice, load)
+    own = Path("/proc/self/autogroup")
+    saved = int(own.read_text().split()[-1]) if own.exists() else None
+    _set_session_nice(os.getpid(), own_nice)
+    try:
+        return _run(*args, nice, load)
+    finally:
+        os.setpriority(os.PRIO_PROCESS, 0, 0)
+        if saved is not None:
+            own.write_text(str(saved))
 
 
 def _run(
