@@ -361,7 +361,10 @@ def test_reconnects_after_drop_without_stalling_other_threads(backend: str) -> N
             r.close()
             stop.set()
             t.join()
-    assert gaps and gaps[0] < 0.050, f"other thread stalled for {gaps[0] * 1e3:.1f} ms"
+    # ur_rtde connecting in this process would hold the GIL for 500 ms and more; a loaded
+    # 2-core machine alone made gaps of up to 56 ms here (a fresh control process starting,
+    # the scheduler), so the bound sits between the two.
+    assert gaps and gaps[0] < 0.200, f"other thread stalled for {gaps[0] * 1e3:.1f} ms"
 
 
 @BACKENDS
