@@ -1379,6 +1379,11 @@ class URRobot(Robot):
             return self._queue.popleft()
         return None
 
+    @property
+    def stamped_on_receipt(self) -> bool:
+        """The receive child stamps each sample as it takes it (either backend)."""
+        return True
+
     def latest_state(self) -> RobotState | None:
         """The newest sample received so far (it stays in the read queue too)."""
         self._pump(0.0, wait_lock=False)
