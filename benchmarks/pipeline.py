@@ -308,15 +308,22 @@ def _unit_nice() -> int:
 
 class _BusyLoad:
     """``n`` busy processes at nice 0, each a session of its own (one scheduling entity, as a
-    service is), kept off the simulated cell's CPU: other work on the daemon's CPUs."""
+    service is), kept off the simulated cell's CPU: other work on the daemon's CPUs. Children
+    of this benchmark, so they count among "all processes of this run" in the CPU figures."""
 
     def __init__(self, n: int) -> None:
         self.procs: list[subprocess.Popen[bytes]] = []
-        for _ in range(n):
-            p = subprocess.Popen([sys.executable, "-c", "while True: pass"], start_new_session=True)
-            self.procs.append(p)
-            _pin_away_from_cell(p.pid)
-            _set_session_nice(p.pid, 0)
+        try:
+            for _ in range(n):
+                p = subprocess.Popen(
+                    [sys.executable, "-c", "while True: pass"], start_new_session=True
+                )
+                self.procs.append(p)
+                _pin_away_from_cell(p.pid)
+                _set_session_nice(p.pid, 0)
+        except BaseException:
+            self.close()  # none left spinning when one could not be started or placed
+            raise
 
     def close(self) -> None:
         for p in self.procs:
