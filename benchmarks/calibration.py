@@ -51,11 +51,11 @@ from typing import Any
 import numpy as np
 
 from wristscan.calib import handeye, icp, kinematics, se3
-from wristscan.daemon import calib_sensor as cs
-from wristscan.daemon.acquire import Acquisition
+from wristscan.daemon.calibrate import sensor as cs
 from wristscan.daemon.config import Config, parse_config
-from wristscan.daemon.simcell import start_cell
-from wristscan.drivers.sim.ur_controller import pick_free_loopback_host
+from wristscan.daemon.procedure.acquisition import Acquisition
+from wristscan.daemon.simcell.cell import start_cell
+from wristscan.drivers.sim.ur.controller import pick_free_loopback_host
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _report import Figure, report
@@ -192,7 +192,7 @@ def _latency_procedure(cfg_text: str, calibration: Path, cell: Any) -> float | N
     """``wristscan calibrate latency`` (the other procedure of issue 7) with the new sensor
     calibration, when it is there: the latency to configure (s), or None."""
     try:
-        from wristscan.daemon.calib_latency import calibrate_latency
+        from wristscan.daemon.calibrate.latency import calibrate_latency
     except ImportError:
         return None
     cfg, _ = _config(0.0, 0.0, cfg_text, calibration)

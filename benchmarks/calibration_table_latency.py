@@ -22,7 +22,7 @@ the fitted and the true axis, so direction errors count whichever way they lean)
 
 The latency is also compared with the time offset the pairing really had, measured from the
 simulator's ground truth during the sweeps (true instant of the robot pose each profile was
-given minus its true exposure; :func:`wristscan.daemon.calib_latency.pairing_truth_tap`). The
+given minus its true exposure; :func:`wristscan.daemon.calibrate.latency.pairing_truth_tap`). The
 two agree only when the simulated sensor sends on time: a one-way clock mapping cannot tell a
 late send from a longer latency, and the simulated sensor sends late whenever it waits for the
 robot's or the table's truth (a busy host), so then the first target misses by that wait while
@@ -46,28 +46,28 @@ from typing import Any
 import numpy as np
 
 from wristscan.calib import se3
-from wristscan.daemon.calib_latency import (
+from wristscan.daemon.calibrate.latency import (
     LatencyOptions,
     calibrate_latency,
     pairing_truth_tap,
     truth_offset_s,
 )
-from wristscan.daemon.calib_sensor import iso9283_axis_sigma
-from wristscan.daemon.calib_table import (
+from wristscan.daemon.calibrate.sensor import iso9283_axis_sigma
+from wristscan.daemon.calibrate.table import (
     TableOptions,
     calibrate_table,
     simulated_cell_spec,
     table_truth,
 )
-from wristscan.daemon.calibfile import (
+from wristscan.daemon.config import Config, load_config
+from wristscan.daemon.io.calibfile import (
     Calibration,
     Residuals,
     RobotIdentity,
     SensorIdentity,
     write_calibration,
 )
-from wristscan.daemon.config import Config, load_config
-from wristscan.daemon.simcell import dump_toml, free_sim_config
+from wristscan.daemon.simcell.cell import dump_toml, free_sim_config
 from wristscan.drivers.sim.cell import CellSpec, SimulatedCell
 
 sys.path.insert(0, str(Path(__file__).parent))

@@ -153,7 +153,7 @@ def _raw_publisher(endpoint: str, key: str, size: int, count: int) -> int:
     a line arrives on stdin; print the elapsed put time."""
     import zenoh
 
-    from wristscan.daemon import wsc1
+    from wristscan.daemon.cloud import wsc1
 
     n = max(0, (size - wsc1.HEADER.size) // 12)
     xyz = np.random.default_rng(1).normal(size=(n, 3)).astype(np.float32)
@@ -498,16 +498,16 @@ def measure_pipeline(
     ``profile_out``: sample the daemon with py-spy (if installed) over the window, folded
     stacks written there. ``load``: busy processes beside the daemon (:class:`_BusyLoad`)."""
     from wristscan.calib import kinematics, se3
-    from wristscan.daemon.calibfile import (
+    from wristscan.daemon.cloud.client import CloudClient
+    from wristscan.daemon.config import load_config
+    from wristscan.daemon.io.calibfile import (
         Calibration,
         Residuals,
         RobotIdentity,
         SensorIdentity,
         write_calibration,
     )
-    from wristscan.daemon.client import CloudClient
-    from wristscan.daemon.config import load_config
-    from wristscan.daemon.simcell import dump_toml, free_sim_config, start_cell
+    from wristscan.daemon.simcell.cell import dump_toml, free_sim_config, start_cell
     from wristscan.drivers.sim.scene import sensor_looking_down
 
     tmp_ctx = tempfile.TemporaryDirectory(prefix="wristscan-bench-") if workdir is None else None
@@ -562,7 +562,14 @@ def measure_pipeline(
             env.pop(k, None)
         with open(log_path, "w") as log_fh:
             daemon = subprocess.Popen(
-                [sys.executable, "-m", "wristscan.daemon.cli", "run", "--config", str(cfg_path)],
+                [
+                    sys.executable,
+                    "-m",
+                    "wristscan.daemon.cli",
+                    "run",
+                    "--config",
+                    str(cfg_path),
+                ],
                 env=env,
                 stdin=subprocess.DEVNULL,
                 stdout=log_fh,
@@ -894,8 +901,8 @@ def measure_hot_path(
     ticks): LPF1 parse + decode, pairing (add + poll), alignment, WSC1 encoding. No sockets,
     no zenoh (the raw zenoh figures cover the transport)."""
     from wristscan.calib import align, se3
-    from wristscan.daemon import wsc1
-    from wristscan.daemon.pairing import Pairer, PairerConfig
+    from wristscan.daemon.cloud import wsc1
+    from wristscan.daemon.sync.pairing import Pairer, PairerConfig
     from wristscan.drivers import lpf1
     from wristscan.drivers.records import RobotState
 

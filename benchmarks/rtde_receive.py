@@ -1,6 +1,6 @@
 """UR robot receive path: the native RTDE client against ur_rtde, idle and with the CPU busy.
 
-For each receive backend of :class:`~wristscan.drivers.robot_ur.URRobot` (``native``,
+For each receive backend of :class:`~wristscan.drivers.ur.robot.URRobot` (``native``,
 ``ur_rtde``) and each load (``idle``; ``hog``: one busy-loop process per core, at this
 process's priority, for the whole window) a ``--duration`` window (default 10 s) of the 500 Hz
 stream of a simulated UR5e controller (its own process, fresh per run) is read through the
@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from wristscan.drivers.robot_ur import URRobot
-from wristscan.drivers.sim.ur_controller import ControllerConfig, SimulatedController
+from wristscan.drivers.sim.ur.controller import ControllerConfig, SimulatedController
+from wristscan.drivers.ur.robot import URRobot
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))

@@ -45,7 +45,7 @@ from _report import Figure, report
 
 from wristscan.calib import se3
 from wristscan.daemon.config import load_config
-from wristscan.daemon.scanjob import (
+from wristscan.daemon.scan.job import (
     MergeOptions,
     ScanCalibration,
     align_passes,
@@ -55,8 +55,8 @@ from wristscan.daemon.scanjob import (
     run_scan,
     voxel_mean,
 )
-from wristscan.daemon.scanplan import ScanPlan, describe_plan, down_matrix, generate_plan
-from wristscan.daemon.simcell import (
+from wristscan.daemon.scan.plan import ScanPlan, describe_plan, down_matrix, generate_plan
+from wristscan.daemon.simcell.cell import (
     dump_toml,
     free_sim_config,
     start_cell,

@@ -43,20 +43,20 @@ from scipy.spatial import cKDTree
 from wristscan.calib import kinematics, se3
 from wristscan.calib.edge import EdgeModel
 from wristscan.daemon.config import Config, load_config
-from wristscan.daemon.replay import ReplayOptions, parse_ur_pose, plan_replay, run_program
-from wristscan.daemon.simcell import dump_toml, free_sim_config
-from wristscan.daemon.teach_edge import (
+from wristscan.daemon.simcell.cell import dump_toml, free_sim_config
+from wristscan.daemon.teach.edge import (
     EdgeOptions,
     learn_edge,
     read_edge_path,
     write_edge_path,
 )
-from wristscan.daemon.teach_plane import (
+from wristscan.daemon.teach.plane import (
     PlaneOptions,
     simulated_cell_spec,
     teach_plane,
     write_truth_calibration,
 )
+from wristscan.daemon.teach.replay import ReplayOptions, parse_ur_pose, plan_replay, run_program
 from wristscan.drivers.sim.cell import SimulatedCell
 from wristscan.drivers.sim.scene import sensor_looking_down
 from wristscan.drivers.sim.scenes_apps import dome_scene, sensor_pose_at_edge, tilted_plate_scene

@@ -64,7 +64,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import median_filter, uniform_filter1d
 from scipy.spatial import cKDTree
 
-from .plane import HyperplaneFit, fit_hyperplane
+from wristscan.calib.plane import HyperplaneFit, fit_hyperplane
 
 __all__ = [
     "EDGE_KINDS",

@@ -589,7 +589,7 @@ class ZenohConfig(_Model):
 
 class CalibrationConfig(_Model):
     file: Path | None = None
-    """The sensor2flange calibration (JSON, see :mod:`wristscan.daemon.calibfile`); relative
+    """The sensor2flange calibration (JSON, see :mod:`wristscan.daemon.io.calibfile`); relative
     paths are resolved against the config file's folder. None: no calibration yet."""
     table_file: Path | None = None
     """The rotary-table calibration (``kind = "table"``)."""

@@ -7,13 +7,12 @@ from dataclasses import dataclass
 from typing import Any
 
 from wristscan.calib import kinematics
+from wristscan.daemon.config import Config, PluginSensorConfig
+from wristscan.daemon.sync.clockmap import ClockConfig
+from wristscan.daemon.sync.pairing import PairerConfig
 from wristscan.drivers import registry
 from wristscan.drivers.base import Device, DriverError
 from wristscan.drivers.records import Profile, RobotState, TableState
-
-from .clockmap import ClockConfig
-from .config import Config, PluginSensorConfig
-from .pairing import PairerConfig
 
 __all__ = ["Devices", "make_devices", "pairer_config", "robot_model"]
 

@@ -14,8 +14,8 @@ import time
 from collections import Counter, deque
 from typing import Any
 
-from .base import ProfileSensor
-from .records import Profile
+from wristscan.drivers.base import ProfileSensor
+from wristscan.drivers.records import Profile
 
 __all__ = ["SensorCore"]
 

@@ -26,9 +26,9 @@ from urllib.parse import urlsplit
 
 import serial
 
-from ._sensor import SensorCore
-from .base import Backoff, DriverError, DriverInitError, LinkState
-from .records import Profile
+from wristscan.drivers._sensor import SensorCore
+from wristscan.drivers.base import Backoff, DriverError, DriverInitError, LinkState
+from wristscan.drivers.records import Profile
 
 __all__ = [
     "LinkDown",

@@ -27,9 +27,9 @@ import time
 from abc import abstractmethod
 from typing import Any
 
-from ._sensor import SensorCore
-from .base import DriverInitError
-from .records import Profile
+from wristscan.drivers._sensor import SensorCore
+from wristscan.drivers.base import DriverInitError
+from wristscan.drivers.records import Profile
 
 __all__ = ["SO_TIMESTAMPNS", "UdpProfileSensor", "kernel_stamp"]
 

@@ -21,7 +21,7 @@ from typing import Any, ClassVar, Generic, Self, TypeVar
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .records import Profile, RobotState, TableState
+from wristscan.drivers.records import Profile, RobotState, TableState
 
 __all__ = [
     "Backoff",

@@ -29,7 +29,7 @@ import numpy as np
 from cobs import cobs
 from numpy.typing import ArrayLike, NDArray
 
-from .records import Profile
+from wristscan.drivers.records import Profile
 
 __all__ = [
     "HEADER",

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from importlib.metadata import entry_points
 from typing import Literal
 
-from .base import Device, DriverNotAvailable
+from wristscan.drivers.base import Device, DriverNotAvailable
 
 __all__ = ["DriverInfo", "Kind", "describe", "load", "names"]
 
@@ -43,7 +43,7 @@ BUILTIN: dict[Kind, dict[str, _Builtin]] = {
         "scip": _Builtin(".sensor_scip:ScipSensor", None, "Hokuyo SCIP 2.0 (serial or TCP)"),
     },
     "robots": {
-        "ur-rtde": _Builtin(".robot_ur:URRobot", None, "Universal Robots over RTDE (ur-rtde)"),
+        "ur-rtde": _Builtin(".ur.robot:URRobot", None, "Universal Robots over RTDE (ur-rtde)"),
     },
     "tables": {
         "modbus": _Builtin(".table_modbus:ModbusTable", None, "Rotary table over Modbus TCP/RTU"),

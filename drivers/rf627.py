@@ -49,7 +49,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .records import Profile
+from wristscan.drivers.records import Profile
 
 __all__ = [
     "DATA_TYPE_PROFILE",

@@ -15,11 +15,11 @@ from typing import Any, ClassVar
 
 from cobs import cobs
 
-from . import lpf1
-from ._sensor import SensorCore
-from ._stream import Chunk, StreamProfileSensor, TcpTransport, Transport, open_url
-from ._udp import UdpProfileSensor
-from .base import DriverInitError
+from wristscan.drivers import lpf1
+from wristscan.drivers._sensor import SensorCore
+from wristscan.drivers._stream import Chunk, StreamProfileSensor, TcpTransport, Transport, open_url
+from wristscan.drivers._udp import UdpProfileSensor
+from wristscan.drivers.base import DriverInitError
 
 __all__ = ["Lpf1SerialSensor", "Lpf1TcpSensor", "Lpf1UdpSensor"]
 

@@ -22,8 +22,8 @@ import statistics
 from collections import deque
 from typing import Any, ClassVar
 
-from . import rf627
-from ._udp import UdpProfileSensor
+from wristscan.drivers import rf627
+from wristscan.drivers._udp import UdpProfileSensor
 
 __all__ = ["Rf627Sensor"]
 

@@ -32,10 +32,10 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
-from . import scip
-from ._stream import Chunk, LinkDown, StreamProfileSensor, Transport, open_url
-from .base import DriverInitError
-from .records import Profile
+from wristscan.drivers import scip
+from wristscan.drivers._stream import Chunk, LinkDown, StreamProfileSensor, Transport, open_url
+from wristscan.drivers.base import DriverInitError
+from wristscan.drivers.records import Profile
 
 __all__ = ["ScipSensor"]
 

@@ -17,8 +17,15 @@ from typing import Any, Literal
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 
-from .base import Backoff, DriverInitError, DriverIOError, DriverTimeout, LinkState, RotaryTable
-from .records import TableState
+from wristscan.drivers.base import (
+    Backoff,
+    DriverInitError,
+    DriverIOError,
+    DriverTimeout,
+    LinkState,
+    RotaryTable,
+)
+from wristscan.drivers.records import TableState
 
 __all__ = ["ModbusTable"]
 

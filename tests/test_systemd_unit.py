@@ -170,8 +170,10 @@ from scipy.spatial.transform import Rotation
 import pymodbus.client, serial, pydantic, typer
 import rtde_control, rtde_receive, dashboard_client
 import zenoh
-from wristscan.daemon import calibfile, config, notify
-from wristscan.daemon.cli import main
+from wristscan.daemon import config
+from wristscan.daemon.io import calibfile
+from wristscan.daemon.service import notify
+from wristscan.daemon.cli.app import main
 from wristscan.calib import kinematics, se3
 assert np.linalg.svd(np.random.default_rng(0).random((64, 64)))[1][0] > 0
 assert np.allclose(least_squares(lambda p: p - 3.0, np.zeros(3)).x, 3.0)

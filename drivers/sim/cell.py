@@ -15,12 +15,11 @@ from typing import Any
 import numpy as np
 
 from wristscan.calib import se3
-
-from .scene import Scene, demo_scene
-from .sensors import SensorSimConfig, SimulatedSensor
-from .table import SimulatedTable, TableSimConfig
-from .truth import TruthRing
-from .ur_controller import ControllerConfig, SimulatedController
+from wristscan.drivers.sim.scene import Scene, demo_scene
+from wristscan.drivers.sim.sensors import SensorSimConfig, SimulatedSensor
+from wristscan.drivers.sim.table import SimulatedTable, TableSimConfig
+from wristscan.drivers.sim.truth import TruthRing
+from wristscan.drivers.sim.ur.controller import ControllerConfig, SimulatedController
 
 __all__ = ["CellSpec", "SimulatedCell"]
 

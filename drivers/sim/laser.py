@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.special import ndtri
 
-from .scene import Scene
+from wristscan.drivers.sim.scene import Scene
 
 __all__ = ["LaserModel", "Measurement"]
 

@@ -23,8 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from wristscan.calib import kinematics, se3
-
-from .scene import Box, Mount, Plane, Primitive, Scene, Vec3, _nearest_positive
+from wristscan.drivers.sim.scene import Box, Mount, Plane, Primitive, Scene, Vec3, _nearest_positive
 
 __all__ = [
     "DomeBoss",

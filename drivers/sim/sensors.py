@@ -68,12 +68,11 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from wristscan.calib import se3
-
-from .. import lpf1, rf627, scip
-from .clock import DeviceClock
-from .laser import LaserModel, Measurement
-from .process import SimProcess
-from .scene import Scene, demo_scene, sensor_looking_down
+from wristscan.drivers import lpf1, rf627, scip
+from wristscan.drivers.sim.clock import DeviceClock
+from wristscan.drivers.sim.laser import LaserModel, Measurement
+from wristscan.drivers.sim.process import SimProcess
+from wristscan.drivers.sim.scene import Scene, demo_scene, sensor_looking_down
 
 __all__ = [
     "DEFAULT_SENSOR2FLANGE_POSE",
@@ -1021,7 +1020,7 @@ class _Runtime:
         table_ring: str | None,
         conn: Connection,
     ) -> None:
-        from .truth import TruthRing
+        from wristscan.drivers.sim.truth import TruthRing
 
         self.cfg = cfg
         self.conn = conn

@@ -29,8 +29,8 @@ from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from typing import Any, Literal
 
-from .process import SimProcess
-from .truth import TruthRing
+from wristscan.drivers.sim.process import SimProcess
+from wristscan.drivers.sim.truth import TruthRing
 
 __all__ = ["REG", "SimulatedTable", "TableMotion", "TableSimConfig"]
 
@@ -130,7 +130,7 @@ def _serve(config: TableSimConfig, ring_name: str | None, conn: Connection) -> N
     from pymodbus.server import ModbusSerialServer, ModbusTcpServer
     from pymodbus.simulator import DataType, SimData, SimDevice
 
-    from .ptypair import PtyPair
+    from wristscan.drivers.sim.ptypair import PtyPair
 
     motion = TableMotion(
         config.initial_angle_rad,

@@ -1,0 +1,479 @@
+"""Sensor latency procedure (``wristscan calibrate latency``).
+
+The sensor sweeps over a fixed tooling ball along its own X axis, forward and backward, at
+several speeds (default 25, 50 and 100 mm/s, capped by ``[robot] max_speed_m_s``). Each sweep is
+paired by the synchroniser with the latency in force (``[sensor] latency_s``) and gives one ball
+centre in the base frame (sphere fit of the known radius, through the sensor calibration in
+force). If the true latency exceeds the configured one by ``dt``, every point of a sweep lies
+displaced by the sensor's motion during ``dt``: the centre seen by a sweep at velocity ``v`` is
+``p* + v dt``. :func:`wristscan.calib.latency.estimate_latency` solves for ``p*`` and ``dt``
+over all sweeps; the latency to configure is ``latency_s + dt``.
+
+* The velocity of each sweep is measured, not assumed: the least-squares slope of the sensor
+  position over the profiles that saw the ball (robot poses at the paired instants).
+* Each sweep reaches its speed before the ball (the run-up is ``v^2 / 2a`` plus a margin), so
+  the ball is seen at constant velocity; the speed spread over the ball is reported.
+* A sweep during which a clock fit of the synchroniser restarted is repeated (its pairing may be
+  off by milliseconds).
+* The repeatability of the robot (its true position wanders by some micrometres between sweeps)
+  is what limits the result; ``repeats`` pairs of sweeps per speed average it down. The
+  uncertainty comes from the residuals of the fit, so it includes it.
+
+The result is a correction that the operator puts into the configuration (``latency_s = ...``
+under ``[sensor]``); the procedure never rewrites the configuration. Safety as for the table
+procedure (:mod:`.calib_table`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from wristscan.calib.latency import LatencyEstimate, estimate_latency
+from wristscan.daemon.calibrate.table import (
+    BallMeasurement,
+    ProcedureError,
+    Progress,
+    ball_scanner,
+    guarded_motion,
+    load_sensor_calibration,
+    no_progress,
+    procedure_acquisition,
+    require_motion,
+    write_json_atomic,
+)
+from wristscan.daemon.config import Config
+
+if TYPE_CHECKING:
+    from wristscan.daemon.procedure.acquisition import Acquisition
+__all__ = [
+    "RESULT_FORMAT",
+    "LatencyOptions",
+    "LatencyResult",
+    "LatencySweep",
+    "calibrate_latency",
+    "latency_report",
+    "outlier_sweeps",
+    "pairing_truth_tap",
+    "truth_offset_s",
+    "write_latency_result",
+]
+
+log = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+
+RESULT_FORMAT = "wristscan-latency"
+
+
+@dataclass(frozen=True)
+class LatencyOptions:
+    """Settings of :func:`calibrate_latency` (SI units)."""
+
+    speeds_m_s: tuple[float, ...] = (0.025, 0.05, 0.1)
+    """Sweep speeds; each is capped by ``[robot] max_speed_m_s``."""
+    repeats: int = 1
+    """Forward + backward pairs per speed."""
+    ball_guess_m: tuple[float, float, float] | None = None
+    """Approximate ball centre (base frame); None: ``standoff_m`` in front of the sensor."""
+    ball_radius_m: float = 0.0127
+    standoff_m: float = 0.10
+    margin_m: float = 0.004
+    """Sweep length beyond the ball on each side (after the run-up)."""
+    locate_speed_m_s: float = 0.02
+    search_margin_m: float = 0.02
+    recentre_tol_m: float = 0.002
+    travel_speed_m_s: float = 0.1
+    accel_m_s2: float | None = None
+    """Acceleration of the sweeps (None: ``[robot] max_accel_m_s2``)."""
+
+    def __post_init__(self) -> None:
+        if not self.speeds_m_s or any(v <= 0 for v in self.speeds_m_s):
+            raise ValueError("speeds_m_s: one or more speeds > 0 needed")
+        if self.repeats < 1:
+            raise ValueError("repeats must be >= 1")
+        if self.ball_radius_m <= 0 or self.standoff_m <= 0:
+            raise ValueError("ball_radius_m and standoff_m must be > 0")
+
+
+@dataclass(frozen=True)
+class LatencySweep:
+    """One recorded sweep: its commanded speed and direction, and what it saw."""
+
+    speed_m_s: float
+    direction: int
+    """+1 forward (along the sensor's +X), -1 backward."""
+    ball: BallMeasurement
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"speed_m_s": self.speed_m_s, "direction": self.direction, **self.ball.to_dict()}
+
+
+@dataclass(frozen=True)
+class LatencyResult:
+    """What :func:`calibrate_latency` found (seconds, metres)."""
+
+    configured_latency_s: float
+    """``[sensor] latency_s`` the sweeps were paired with."""
+    estimate: LatencyEstimate
+    """The correction ``dt`` (``latency_s``) and its standard deviation (``std_s``)."""
+    sweeps: tuple[LatencySweep, ...]
+    ball_centre_m: FloatArray
+    """(3,) ball centre corrected for the latency (base frame)."""
+    sweep_axis: FloatArray
+    """(3,) unit direction of the forward sweeps (base frame)."""
+    speed_cap_m_s: float
+    sensor_calibration: str
+    duration_s: float
+    config_source: str = ""
+    created_utc: datetime = field(default_factory=lambda: datetime.now(UTC))
+
+    @property
+    def latency_s(self) -> float:
+        """The latency to configure: configured plus the correction."""
+        return self.configured_latency_s + self.estimate.latency_s
+
+    @property
+    def std_s(self) -> float:
+        return self.estimate.std_s
+
+    def toml_line(self) -> str:
+        """The line to put under ``[sensor]`` (microsecond resolution)."""
+        return f"latency_s = {max(self.latency_s, 0.0):.6f}"
+
+    def along_motion_m(self) -> FloatArray:
+        """(n,) apparent ball position of each sweep along the forward direction, relative to
+        the corrected centre (m): ``~ v dt`` with ``v`` the signed speed."""
+        c = np.stack([s.ball.centre for s in self.sweeps])
+        return np.asarray((c - self.ball_centre_m) @ self.sweep_axis)
+
+    def signed_speeds_m_s(self) -> FloatArray:
+        """(n,) measured velocity of each sweep along the forward direction (m/s)."""
+        v = np.stack([s.ball.velocity_m_s for s in self.sweeps])
+        return np.asarray(v @ self.sweep_axis)
+
+    def to_dict(self) -> dict[str, Any]:
+        e = self.estimate
+        return {
+            "format": RESULT_FORMAT,
+            "version": 1,
+            "latency_s": self.latency_s,
+            "std_s": e.std_s,
+            "configured_latency_s": self.configured_latency_s,
+            "correction_s": e.latency_s,
+            "toml": f"[sensor] {self.toml_line()}",
+            "rms_m": e.rms_m,
+            "n_sweeps": e.n_sweeps,
+            "ball_centre_m": self.ball_centre_m.tolist(),
+            "sweep_axis": self.sweep_axis.tolist(),
+            "speed_cap_m_s": self.speed_cap_m_s,
+            "sweeps": [s.to_dict() for s in self.sweeps],
+            "residuals_m": e.residuals.tolist(),
+            "sensor_calibration": self.sensor_calibration,
+            "config": self.config_source,
+            "duration_s": self.duration_s,
+            "created_utc": self.created_utc.isoformat(timespec="seconds").replace("+00:00", "Z"),
+        }
+
+
+def calibrate_latency(
+    cfg: Config,
+    options: LatencyOptions | None = None,
+    *,
+    confirmed: bool = False,
+    progress: Progress | None = None,
+    acquisition: Acquisition | None = None,
+) -> LatencyResult:
+    """Run the latency procedure on the devices of ``cfg`` (see the module docstring).
+    ``acquisition``: an already built, unopened one (tests, benchmarks); default: one on the
+    devices of ``cfg``.
+
+    Raises :class:`~.calib_table.MotionNotConfirmed` before anything moves,
+    :class:`~.calib_table.ProcedureError` without a sensor calibration or when the sweeps cannot
+    separate the latency, :class:`~.calib_table.ProcedureAborted` when the run stopped part way.
+    """
+    opts = options or LatencyOptions()
+    require_motion(cfg, confirmed)
+    calib = load_sensor_calibration(cfg)
+    s2f = np.asarray(calib.transform, dtype=np.float64)
+    cap = float(cfg.robot.max_speed_m_s)
+    speeds = _capped(opts.speeds_m_s, cap)
+    plan = [(v, d) for v in speeds for _ in range(opts.repeats) for d in (1, -1)]
+    total = len(plan) + 3
+    report = progress or no_progress
+    t_start = time.monotonic()
+    report(0, total, "connecting, waiting for paired profiles")
+
+    with procedure_acquisition(cfg, acquisition) as acq:
+        with guarded_motion(acq, "latency calibration"):
+            scanner, guess = ball_scanner(acq, s2f, opts, opts.accel_m_s2)
+            report(1, total, "locating the ball")
+            first = scanner.locate(
+                guess,
+                speed_m_s=opts.locate_speed_m_s,
+                margin_m=opts.search_margin_m,
+                recentre_tol_m=opts.recentre_tol_m,
+                strict_clock=False,
+            )
+            centre = first.centre
+            sweeps: list[LatencySweep] = []
+            for i, (v, d) in enumerate(plan):
+                way = "forward" if d > 0 else "backward"
+                report(2 + i, total, f"sweep {i + 1}/{len(plan)}: {way} at {v * 1e3:.0f} mm/s")
+                ball = scanner.measure(
+                    centre, speed_m_s=v, margin_m=opts.margin_m, direction=d, seed=i
+                )
+                if ball.speed_spread > 0.05:
+                    log.warning(
+                        "sweep %d: the speed varied by %.0f %% over the ball (too short a run-up?)",
+                        i + 1,
+                        100 * ball.speed_spread,
+                    )
+                sweeps.append(LatencySweep(v, d, ball))
+            report(len(plan) + 2, total, "fitting the latency")
+            est = _fit(sweeps)
+            bad = outlier_sweeps(est)
+            for i in bad:
+                # One sweep far off the others: its poses were wrong for part of it (a stalled
+                # stream, a clock hiccup); measure it again rather than let it pull the fit.
+                s = sweeps[i]
+                off = float(np.linalg.norm(est.residuals[i])) * 1e6
+                report(len(plan) + 2, total, f"sweep {i + 1} is {off:.0f} um off: sweeping again")
+                ball = scanner.measure(
+                    centre,
+                    speed_m_s=s.speed_m_s,
+                    margin_m=opts.margin_m,
+                    direction=s.direction,
+                    seed=1000 + i,
+                )
+                ball = dataclasses.replace(ball, rescans=s.ball.rescans + ball.rescans + 1)
+                sweeps[i] = LatencySweep(s.speed_m_s, s.direction, ball)
+            if bad:
+                est = _fit(sweeps)
+                still = outlier_sweeps(est)
+                if still:
+                    log.warning("sweeps %s stay off the others", [i + 1 for i in still])
+            scanner.move_to(centre, 0.0)
+        report(total, total, "done")
+        return LatencyResult(
+            configured_latency_s=float(cfg.sensor.latency_s),
+            estimate=est,
+            sweeps=tuple(sweeps),
+            ball_centre_m=np.asarray(est.feature_position, dtype=np.float64),
+            sweep_axis=scanner.sweep_axis,
+            speed_cap_m_s=cap,
+            sensor_calibration=str(cfg.calibration.file),
+            duration_s=time.monotonic() - t_start,
+            config_source=cfg.source,
+        )
+
+
+def _fit(sweeps: Sequence[LatencySweep]) -> LatencyEstimate:
+    P = np.stack([s.ball.centre for s in sweeps])
+    V = np.stack([s.ball.velocity_m_s for s in sweeps])
+    try:
+        return estimate_latency(P, V)
+    except ValueError as exc:
+        raise ProcedureError(f"latency fit failed: {exc}") from None
+
+
+def outlier_sweeps(est: LatencyEstimate, k: float = 5.0) -> list[int]:
+    """Sweeps whose residual (norm) exceeds ``median + k * robust sigma`` and three times the
+    median: one bad sweep among many."""
+    r = np.linalg.norm(est.residuals, axis=1)
+    if r.shape[0] < 4:
+        return []
+    med = float(np.median(r))
+    sigma = 1.4826 * float(np.median(np.abs(r - med)))
+    limit = max(med + k * sigma, 3.0 * med)
+    return [int(i) for i in np.flatnonzero(r > limit)]
+
+
+def _capped(speeds: Sequence[float], cap: float) -> list[float]:
+    out = []
+    for v in speeds:
+        if v > cap:
+            log.warning("sweep speed %.3f m/s capped to max_speed_m_s %.3f", v, cap)
+        out.append(min(float(v), cap))
+    if len(set(out)) < len(out):
+        log.warning("speeds coincide after capping: %s m/s", out)
+    return out
+
+
+def write_latency_result(path: str | Path, result: LatencyResult) -> Path:
+    """Write the JSON result file atomically (the configuration is never rewritten)."""
+    return write_json_atomic(path, json.dumps(result.to_dict(), indent=2) + "\n")
+
+
+# --------------------------------------------------------------------------------------------
+# Report
+
+
+def latency_report(result: LatencyResult, subtitle: str = "") -> Any:
+    """A :class:`~.report.Report` of ``result``: the latency with its uncertainty, every sweep,
+    and (with matplotlib) the apparent ball position against the sweep velocity."""
+    from wristscan.daemon.io.report import Report, have_matplotlib
+
+    e = result.estimate
+    rep = Report("Sensor latency calibration", subtitle)
+    rep.section(
+        "Result",
+        f"{e.n_sweeps} sweeps over the ball ({result.duration_s:.0f} s). The sweeps were paired "
+        f"with the configured latency {result.configured_latency_s * 1e3:.4f} ms; the fit gives "
+        "the correction to add. Uncertainties are one sigma from the residuals (they include "
+        "the robot's repeatability).",
+    )
+    c = result.ball_centre_m
+    rep.table(
+        ["parameter", "value", "1 sigma", "unit"],
+        [
+            ["sensor latency", f"{result.latency_s * 1e3:.4f}", f"{e.std_s * 1e3:.4f}", "ms"],
+            [
+                "correction to the configured",
+                f"{e.latency_s * 1e3:.4f}",
+                f"{e.std_s * 1e3:.4f}",
+                "ms",
+            ],
+            ["ball centre x", f"{c[0] * 1e3:.4f}", "", "mm"],
+            ["ball centre y", f"{c[1] * 1e3:.4f}", "", "mm"],
+            ["ball centre z", f"{c[2] * 1e3:.4f}", "", "mm"],
+            ["RMS residual", f"{e.rms_m * 1e6:.2f}", "", "um"],
+        ],
+    )
+    rep.text(
+        "Put this line under [sensor] in the configuration:\n" + result.toml_line(),
+        preformatted=True,
+    )
+    if result.latency_s < 0:
+        rep.text(
+            "The measured latency is negative: the sensor's timestamps run ahead of the robot's. "
+            "Configure latency_s = 0 and the rest as [sync] robot_latency_s."
+        )
+    rep.section("Sweeps", "Apparent ball position along the forward direction, per sweep.")
+    along = result.along_motion_m()
+    speeds = result.signed_speeds_m_s()
+    rows = []
+    for s, a, v, r in zip(result.sweeps, along, speeds, e.residuals, strict=True):
+        rows.append(
+            [
+                f"{s.speed_m_s * 1e3:.0f}",
+                "forward" if s.direction > 0 else "backward",
+                f"{v * 1e3:.2f}",
+                f"{a * 1e6:.2f}",
+                f"{float(np.linalg.norm(r)) * 1e6:.2f}",
+                f"{100 * s.ball.speed_spread:.1f}",
+                str(s.ball.n_points),
+                str(s.ball.rescans),
+            ]
+        )
+    rep.table(
+        [
+            "speed (mm/s)",
+            "direction",
+            "measured (mm/s)",
+            "along motion (um)",
+            "residual (um)",
+            "speed spread (%)",
+            "points",
+            "rescans",
+        ],
+        rows,
+    )
+    if have_matplotlib():
+        from wristscan.daemon.io.report import new_figure
+
+        fig, ax = new_figure(1, 1, figsize=(6.5, 4.2))
+        ax.plot(1e3 * speeds, 1e6 * along, "o", label="sweeps")
+        vmax = float(np.max(np.abs(speeds))) * 1.1
+        vv = np.linspace(-vmax, vmax, 3)
+        ax.plot(
+            1e3 * vv,
+            1e6 * vv * e.latency_s,
+            "-",
+            label=f"fit: {e.latency_s * 1e3:.3f} +- {e.std_s * 1e3:.3f} ms",
+        )
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_xlabel("sweep velocity along the forward direction (mm/s)")
+        ax.set_ylabel("apparent ball position (um)")
+        ax.legend(fontsize=8)
+        rep.figure(fig, "Apparent ball position against sweep velocity: the slope is the latency")
+    else:
+        rep.text("(figures need matplotlib: pip install 'wristscan[plot]')")
+    return rep
+
+
+# --------------------------------------------------------------------------------------------
+# Ground truth on the simulated cell (tests, benchmarks)
+
+
+def pairing_truth_tap(
+    cfg: Config, sensor_info: dict[str, Any], controller_start_ns: int
+) -> Acquisition:
+    """An :class:`~.acquire.Acquisition` on the simulated cell that also measures, from the
+    simulator's ground truth, the time offset the pairing really has: for every paired profile,
+    the true instant of the robot pose it was given minus its true exposure instant.
+
+    That is what ``[sensor] latency_s`` must absorb (exposure to stamp, the smallest transport
+    delay of the profiles, and the robot stream's own, see docs/sync.md), which the simulator's
+    nominal ``latency_s`` only equals when its sensor sends on time. ``sensor_info`` is
+    ``SimulatedSensor.info()``; ``controller_start_ns`` the host time of controller time 0.
+    Read the result with ``offset_s(acq, windows)`` (:func:`truth_offset_s`).
+    """
+    from wristscan.daemon.procedure.acquisition import Acquisition
+
+    t0 = int(sensor_info["t0_ns"])
+    period = float(sensor_info["period_ns"])
+    base = int(sensor_info["counter_base"])
+
+    class _Tap(Acquisition):
+        def __init__(self) -> None:
+            super().__init__(cfg)
+            self.truth_rows: list[NDArray[np.int64]] = []
+
+        def _offer(self, batch: Any) -> None:
+            # In the pipeline's worker thread, the one that feeds the robot clock: the mapping
+            # read here is the one the batch was paired with.
+            clock = self.pipeline.pairer.robot_clock
+            if clock.locked:
+                c = clock.to_device(batch.exposure_ns)
+                exposure = t0 + np.rint((batch.frame_counter + base) * period).astype(np.int64)
+                offset = (controller_start_ns + c) - exposure
+                self.truth_rows.append(np.stack([batch.exposure_ns, offset], axis=1))
+            super()._offer(batch)
+
+    return _Tap()
+
+
+def truth_offset_s(acq: Acquisition, result: LatencyResult) -> float:
+    """The true pairing offset (s) that ``result`` should have found, from an acquisition of
+    :func:`pairing_truth_tap`: per sweep, the median offset of the profiles that saw the ball;
+    averaged with the weights the least-squares fit gives the sweeps (the squared centred
+    velocity), so that an offset that wanders during the run is compared like with like. NaN
+    without data."""
+    rows = getattr(acq, "truth_rows", [])
+    if not rows:
+        return float("nan")
+    data = np.concatenate(rows)
+    V = np.stack([s.ball.velocity_m_s for s in result.sweeps])
+    w = np.sum((V - V.mean(axis=0)) ** 2, axis=1)
+    taus, weights = [], []
+    for s, wi in zip(result.sweeps, w, strict=True):
+        speed = float(np.linalg.norm(s.ball.velocity_m_s))
+        half = round(1e9 * min(1.0, 0.0127 / max(speed, 1e-3)))
+        inside = np.abs(data[:, 0] - s.ball.t_mid_ns) <= half
+        if inside.any():
+            taus.append(float(np.median(data[inside, 1])) * 1e-9)
+            weights.append(float(wi))
+    if not taus or sum(weights) <= 0:
+        return float("nan")
+    return float(np.average(taus, weights=weights))

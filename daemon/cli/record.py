@@ -1,0 +1,338 @@
+"""``wristscan record``: save the daemon's published clouds to a PLY or NPZ file.
+
+PLY is streamed to disk (a long recording never sits in memory) and renamed into place when the
+recording ends; NPZ keeps the batch structure (sequence numbers, times, profile indices) and is
+assembled in memory. Either way the file appears complete under its name or not at all, also
+when the recording is stopped with Ctrl-C or SIGTERM.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Any
+
+import typer
+
+from wristscan.daemon.cli.status import (
+    ConfigOpt,
+    ConnectOpt,
+    ModeOpt,
+    PrefixOpt,
+    TimeoutOpt,
+    fail,
+    open_client,
+    resolve_target,
+    stop_on_signals,
+    table,
+    wait_alive,
+)
+
+if TYPE_CHECKING:
+    import numpy as np
+    from numpy.typing import NDArray
+
+    from wristscan.daemon.cloud.wsc1 import Cloud
+    from wristscan.daemon.io.ply import PlyStreamWriter
+SUFFIXES = (".ply", ".npz")
+RING_CAPACITY = 64
+"""Batches the subscriber holds while the file is being written (then the oldest are lost)."""
+
+
+@dataclass
+class _Tally:
+    points: int = 0
+    batches: int = 0
+    lost: int = 0
+    """Batches missing between the sequence numbers received."""
+    restarts: int = 0
+    """Sequence numbers that went backwards (a daemon restart)."""
+    last_seq: int | None = None
+    frames: dict[str, int] = field(default_factory=dict)
+    t_first_ns: int | None = None
+    t_last_ns: int | None = None
+
+    def count(self, cloud: Cloud) -> None:
+        if self.last_seq is not None:
+            if cloud.seq > self.last_seq:
+                self.lost += cloud.seq - self.last_seq - 1
+            else:
+                self.restarts += 1
+        self.last_seq = cloud.seq
+        self.batches += 1
+        self.frames[cloud.frame_id] = self.frames.get(cloud.frame_id, 0) + 1
+        if self.t_first_ns is None:
+            self.t_first_ns = cloud.t_first_ns
+        self.t_last_ns = cloud.t_last_ns
+
+
+class _PlySink:
+    """Streams points into a :class:`PlyStreamWriter` opened at the first batch (which decides
+    whether the file carries intensity)."""
+
+    def __init__(self, path: Path, ascii: bool, prefix: str) -> None:
+        self.path = path
+        self.ascii = ascii
+        self.prefix = prefix
+        self.writer: PlyStreamWriter | None = None
+        self.intensity_mismatch = 0
+
+    def _open(self, has_intensity: bool) -> PlyStreamWriter:
+        from wristscan.daemon.io.ply import PlyStreamWriter
+
+        return PlyStreamWriter(
+            self.path,
+            has_intensity=has_intensity,
+            binary=not self.ascii,
+            comments=["wristscan record", f"source {self.prefix}/cloud", "units metres"],
+        )
+
+    def add(self, cloud: Cloud, take: int) -> None:
+        import numpy as np
+
+        if self.writer is None:
+            self.writer = self._open(cloud.intensity is not None)
+        intensity = None
+        if self.writer.has_intensity:
+            if cloud.intensity is None:
+                self.intensity_mismatch += 1
+                intensity = np.zeros(take, np.uint8)
+            else:
+                intensity = cloud.intensity[:take]
+        elif cloud.intensity is not None:
+            self.intensity_mismatch += 1
+        self.writer.write(cloud.xyz[:take], intensity=intensity)
+
+    def close(self, tally: _Tally) -> Path:
+        writer = self.writer if self.writer is not None else self._open(False)
+        frames = ",".join(tally.frames) or "none"
+        writer.comments += [f"frame {frames}", f"batches {tally.batches} lost {tally.lost}"]
+        if tally.t_first_ns is not None:
+            writer.comments.append(f"t_first_ns {tally.t_first_ns} t_last_ns {tally.t_last_ns}")
+        return writer.close()
+
+    def abort(self) -> None:
+        if self.writer is not None:
+            self.writer.abort()
+
+
+class _NpzSink:
+    """Keeps the batches and writes one ``.npz`` with per-point and per-batch arrays."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.xyz: list[NDArray[np.float32]] = []
+        self.intensity: list[NDArray[np.uint8] | None] = []
+        self.profile_index: list[NDArray[np.uint32] | None] = []
+        self.batch: list[tuple[int, int, int, int, int, str]] = []
+        self.intensity_mismatch = 0
+
+    def add(self, cloud: Cloud, take: int) -> None:
+        # Copies: the decoded arrays are views into the received payload.
+        self.xyz.append(cloud.xyz[:take].copy())
+        self.intensity.append(None if cloud.intensity is None else cloud.intensity[:take].copy())
+        self.profile_index.append(
+            None if cloud.profile_index is None else cloud.profile_index[:take].copy()
+        )
+        self.batch.append(
+            (cloud.seq, cloud.t_first_ns, cloud.t_last_ns, take, cloud.n_profiles, cloud.frame_id)
+        )
+
+    def arrays(self) -> dict[str, Any]:
+        import numpy as np
+
+        out: dict[str, Any] = {
+            "xyz": np.concatenate(self.xyz) if self.xyz else np.zeros((0, 3), np.float32)
+        }
+        have = [a is not None for a in self.intensity]
+        if have and any(have):
+            self.intensity_mismatch = have.count(False)
+            out["intensity"] = np.concatenate(
+                [
+                    a if a is not None else np.zeros(len(x), np.uint8)
+                    for a, x in zip(self.intensity, self.xyz, strict=True)
+                ]
+            )
+        if self.profile_index and all(a is not None for a in self.profile_index):
+            out["profile_index"] = np.concatenate([a for a in self.profile_index if a is not None])
+        cols = list(zip(*self.batch, strict=True)) if self.batch else [()] * 6
+        out["seq"] = np.array(cols[0], np.uint64)
+        out["t_first_ns"] = np.array(cols[1], np.int64)
+        out["t_last_ns"] = np.array(cols[2], np.int64)
+        out["n_points"] = np.array(cols[3], np.int64)
+        out["n_profiles"] = np.array(cols[4], np.uint32)
+        out["frame_id"] = np.array(cols[5], dtype="U16")
+        return out
+
+    def close(self, tally: _Tally) -> Path:
+        import numpy as np
+
+        from wristscan.daemon.io.ply import atomic_writer
+
+        arrays = self.arrays()
+        with atomic_writer(self.path) as f:
+            np.savez(f, **arrays)
+        return self.path
+
+    def abort(self) -> None:
+        self.xyz.clear()
+
+
+def _check_out(out: Path, ascii: bool) -> None:
+    if out.suffix.lower() not in SUFFIXES:
+        raise fail(f"--out must end in .ply or .npz, got {str(out)!r}", 2)
+    if ascii and out.suffix.lower() != ".ply":
+        raise fail("--ascii applies to .ply output only", 2)
+    if out.is_dir():
+        raise fail(f"--out {str(out)!r} is a folder", 2)
+    if not out.parent.is_dir():
+        raise fail(f"the folder of --out does not exist: {str(out.parent)!r}", 2)
+
+
+def record(
+    out: Annotated[
+        Path,
+        typer.Option(
+            "--out", "-o", help="Output file: .ply (streamed to disk) or .npz.", show_default=False
+        ),
+    ],
+    config: ConfigOpt = None,
+    prefix: PrefixOpt = None,
+    connect: ConnectOpt = None,
+    mode: ModeOpt = None,
+    duration: Annotated[
+        float | None,
+        typer.Option("--duration", "-d", help="Stop after this many seconds."),
+    ] = None,
+    points: Annotated[
+        int | None, typer.Option("--points", "-n", min=1, help="Stop after this many points.")
+    ] = None,
+    ascii: Annotated[bool, typer.Option("--ascii", help="Write ASCII PLY (large, slow).")] = False,
+    timeout: TimeoutOpt = 5.0,
+    progress: Annotated[
+        bool | None,
+        typer.Option(
+            "--progress/--no-progress",
+            help="Progress bar on stderr (default: when stderr is a terminal).",
+            show_default=False,
+        ),
+    ] = None,
+) -> None:
+    """Record the daemon's point clouds to a file until --duration, --points or Ctrl-C."""
+    _check_out(out, ascii)
+    if duration is not None and duration <= 0:
+        raise fail("--duration must be > 0 seconds", 2)
+    target = resolve_target(config, prefix, connect, mode)
+    from tqdm import tqdm
+
+    with stop_on_signals() as stop:
+        client = open_client(target, capacity=RING_CAPACITY)
+        try:
+            if not wait_alive(client, timeout, stop):
+                if stop.is_set():
+                    raise typer.Exit(130)
+                raise fail(
+                    f"no wristscan daemon answered on {target.describe()} within {timeout:g} s",
+                    1,
+                )
+            typer.echo(f"recording {target.prefix}/cloud to {out} (Ctrl-C to stop)", err=True)
+            sink: _PlySink | _NpzSink = (
+                _PlySink(out, ascii, target.prefix)
+                if out.suffix.lower() == ".ply"
+                else _NpzSink(out)
+            )
+            tally = _Tally()
+            bar = tqdm(
+                total=points,
+                unit="pt",
+                unit_scale=True,
+                file=sys.stderr,
+                disable=not (sys.stderr.isatty() if progress is None else progress),
+                mininterval=0.25,
+                dynamic_ncols=True,
+            )
+            t0 = time.monotonic()
+            reason = "signal"
+            try:
+                while not stop.is_set():
+                    wait = 0.1
+                    if duration is not None:
+                        left = duration - (time.monotonic() - t0)
+                        if left <= 0:
+                            reason = "duration reached"
+                            break
+                        wait = min(wait, left)
+                    cloud = client.recv(timeout=wait)
+                    if cloud is None:
+                        continue
+                    tally.count(cloud)
+                    take = cloud.n_points
+                    if points is not None:
+                        take = min(take, points - tally.points)
+                    sink.add(cloud, take)
+                    tally.points += take
+                    bar.set_postfix(batches=tally.batches, lost=tally.lost, refresh=False)
+                    bar.update(take)
+                    if points is not None and tally.points >= points:
+                        reason = "point limit reached"
+                        break
+                elapsed = time.monotonic() - t0
+                bar.close()
+                path = sink.close(tally)
+            except BaseException:
+                bar.close()
+                sink.abort()
+                raise
+        finally:
+            client.close()
+    _summary(path, tally, client.dropped, client.malformed, elapsed, reason, sink)
+
+
+def _summary(
+    path: Path,
+    tally: _Tally,
+    overflow: int,
+    malformed: int,
+    elapsed: float,
+    reason: str,
+    sink: _PlySink | _NpzSink,
+) -> None:
+    lost = f"{tally.lost} batches (seq gaps)"
+    if overflow:
+        lost += f", {overflow} of them dropped here: the recorder was too slow"
+    rows = [
+        ("file", str(path.resolve())),
+        ("points", str(tally.points)),
+        ("batches", str(tally.batches)),
+        ("lost", lost),
+        ("malformed", str(malformed)),
+        ("frame", ", ".join(tally.frames) or "-"),
+        ("duration", f"{elapsed:.2f} s"),
+        ("stopped", reason),
+    ]
+    typer.echo("\n".join(table(rows, indent="")))
+    if tally.batches == 0:
+        typer.echo("warning: no cloud was received; the file is empty", err=True)
+    if len(tally.frames) > 1:
+        typer.echo(
+            f"warning: batches came in several frames ({', '.join(tally.frames)}); "
+            "the file mixes them",
+            err=True,
+        )
+    if tally.restarts:
+        typer.echo(
+            f"warning: the sequence restarted {tally.restarts} time(s) (daemon restarted?)",
+            err=True,
+        )
+    if sink.intensity_mismatch:
+        typer.echo(
+            f"warning: {sink.intensity_mismatch} batch(es) differed in carrying intensity "
+            "(filled with 0 or left out)",
+            err=True,
+        )
+
+
+def register(app: typer.Typer) -> None:
+    app.command("record")(record)

@@ -1,0 +1,29 @@
+"""``wristscan run --config FILE``: the acquisition service."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("run")
+    def run(
+        config: Path = typer.Option(..., "--config", "-c", help="Cell configuration (TOML)."),
+        uncalibrated: bool = typer.Option(
+            False,
+            "--uncalibrated",
+            help="Start without a calibration file (points published with the sensor at the "
+            "flange; the status says 'calibrated: false').",
+        ),
+    ) -> None:
+        """Run the acquisition daemon until SIGTERM (systemd Type=notify service)."""
+        import logging
+
+        from wristscan.daemon.service.runtime import run_service
+
+        if not logging.getLogger().handlers:
+            logging.basicConfig(level=logging.INFO)
+        code = run_service(config, uncalibrated=uncalibrated)
+        raise typer.Exit(code)

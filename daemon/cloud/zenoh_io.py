@@ -1,0 +1,153 @@
+"""The daemon's zenoh face: session set-up and the keys of the WSC1 contract (DESIGN.md).
+
+| key | what |
+|---|---|
+| ``<prefix>/cloud`` | aligned point batches, WSC1, encoding ``application/octet-stream;wsc1`` |
+| ``<prefix>/status`` | JSON health/status, published periodically |
+| ``<prefix>/alive`` | liveliness token while the daemon runs |
+| ``<prefix>/calibration`` | queryable: the calibration in force, JSON |
+| ``<prefix>/stats`` | queryable: counters, JSON |
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Callable, Sequence
+from typing import Any, Literal
+
+import numpy as np
+import zenoh
+from numpy.typing import NDArray
+
+from wristscan.daemon.cloud import wsc1
+
+__all__ = ["DaemonZenoh", "open_session", "session_config"]
+
+log = logging.getLogger(__name__)
+
+JsonFn = Callable[[], dict[str, Any]]
+
+
+def session_config(
+    mode: Literal["peer", "client", "router"] = "peer",
+    connect: Sequence[str] = (),
+    listen: Sequence[str] = (),
+    multicast_scouting: bool = False,
+) -> zenoh.Config:
+    """A zenoh configuration with explicit endpoints (peer mode by default; ``client`` towards
+    routers for several machines). Multicast scouting stays off unless asked for, so a cell PC
+    never talks to whatever else is on the plant network by accident."""
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    if mode != "client":
+        conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    conf.insert_json5("scouting/multicast/enabled", json.dumps(multicast_scouting))
+    return conf
+
+
+def open_session(
+    mode: Literal["peer", "client", "router"] = "peer",
+    connect: Sequence[str] = (),
+    listen: Sequence[str] = (),
+    multicast_scouting: bool = False,
+) -> zenoh.Session:
+    return zenoh.open(session_config(mode, connect, listen, multicast_scouting))
+
+
+class DaemonZenoh:
+    """Publisher, liveliness token and queryables of one daemon instance."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        prefix: str,
+        congestion: Literal["drop", "block"] = "drop",
+        calibration: JsonFn | None = None,
+        stats: JsonFn | None = None,
+    ) -> None:
+        self.session = session
+        self.prefix = prefix.rstrip("/")
+        cc = zenoh.CongestionControl.DROP if congestion == "drop" else zenoh.CongestionControl.BLOCK
+        self._cloud = session.declare_publisher(
+            f"{self.prefix}/cloud",
+            encoding=zenoh.Encoding(wsc1.ENCODING),
+            congestion_control=cc,
+        )
+        self._status = session.declare_publisher(
+            f"{self.prefix}/status", encoding=zenoh.Encoding("application/json")
+        )
+        self._token = session.liveliness().declare_token(f"{self.prefix}/alive")
+        self._calibration_fn = calibration or dict
+        self._stats_fn = stats or dict
+        self._queryables = [
+            session.declare_queryable(
+                f"{self.prefix}/calibration", self._answer(lambda: self._calibration_fn())
+            ),
+            session.declare_queryable(
+                f"{self.prefix}/stats", self._answer(lambda: self._stats_fn())
+            ),
+        ]
+        self.seq = 0
+        self.published = 0
+        self._closed = False
+
+    @staticmethod
+    def _answer(fn: JsonFn) -> Callable[[zenoh.Query], None]:
+        def on_query(query: zenoh.Query) -> None:
+            try:
+                body = json.dumps(fn())
+            except Exception as exc:  # a bad reply must reach the asker, not kill zenoh's thread
+                log.exception("query %s failed", query.key_expr)
+                query.reply_err(json.dumps({"error": str(exc)}))
+                return
+            query.reply(query.key_expr, body, encoding=zenoh.Encoding("application/json"))
+
+        return on_query
+
+    def set_sources(self, calibration: JsonFn | None = None, stats: JsonFn | None = None) -> None:
+        """Swap what the queryables answer (after a reload)."""
+        if calibration is not None:
+            self._calibration_fn = calibration
+        if stats is not None:
+            self._stats_fn = stats
+
+    def publish_cloud(
+        self,
+        xyz: NDArray[np.floating],
+        t_first_ns: int,
+        t_last_ns: int,
+        n_profiles: int,
+        frame_id: str,
+        intensity: NDArray[np.uint8] | None = None,
+        profile_index: NDArray[np.integer] | None = None,
+    ) -> int:
+        """Publish one batch; returns its sequence number (consecutive: a gap means loss)."""
+        payload = wsc1.encode(
+            xyz,
+            seq=self.seq,
+            t_first_ns=t_first_ns,
+            t_last_ns=t_last_ns,
+            n_profiles=n_profiles,
+            frame_id=frame_id,
+            intensity=intensity,
+            profile_index=profile_index,
+        )
+        self._cloud.put(payload)
+        self.seq += 1
+        self.published += 1
+        return self.seq - 1
+
+    def publish_status(self, status: dict[str, Any]) -> None:
+        self._status.put(json.dumps(status))
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for q in self._queryables:
+            q.undeclare()
+        self._token.undeclare()
+        self._cloud.undeclare()
+        self._status.undeclare()

@@ -1,0 +1,630 @@
+"""The acquisition pipeline: sensor driver -> synchroniser -> alignment -> zenoh, in batches.
+
+Threads:
+
+* one reader per device (sensor, robot, table) that blocks on the driver's ``read`` and puts
+  records into a bounded queue (a full queue drops the record and counts it by reason);
+* one worker that, every ``batch_s``, drains the queues into the :class:`Pairer`, aligns the
+  paired batches with the calibration in force (vectorised, Eq. 1) and publishes WSC1 batches.
+
+Counters always add up: ``received = published + dropped (by reason) + pending``. Device errors
+never kill the pipeline (drivers reconnect by themselves); an unexpected exception in a thread
+marks the pipeline failed, which the service turns into a non-zero exit (systemd restarts it).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import gc
+import logging
+import sys
+import threading
+import time
+from collections import Counter, deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Generic, TypeVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from wristscan.calib import align
+from wristscan.daemon.sync.pairing import PairedBatch, Pairer
+from wristscan.drivers.base import Device, DriverError
+from wristscan.drivers.records import Profile, RobotState, TableState
+
+__all__ = ["AlignmentSetup", "LatencyWindow", "Pipeline", "PipelineSettings"]
+
+log = logging.getLogger(__name__)
+
+_SLOW_TICK_NS = 50_000_000
+"""A tick longer than this (five batch periods at the default) is counted and logged."""
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class AlignmentSetup:
+    """The calibration in force, as the worker uses it (swapped atomically as one object)."""
+
+    sensor2flange: NDArray[np.float64]
+    frame: str = "base"
+    base2table: NDArray[np.float64] | None = None
+    encoder_offset_rad: float = 0.0
+    calibrated: bool = True
+    description: dict[str, Any] | None = None
+
+
+@dataclass(frozen=True)
+class PipelineSettings:
+    batch_s: float = 0.010
+    profile_queue: int = 4096
+    state_queue: int = 65536
+    status_period_s: float = 1.0
+    state_wait_s: float = 0.005
+    """At a tick, wait up to this long for the robot (or table) states that profiles already
+    received still need (the state after their exposure is a few ms away), and publish them in
+    this tick's batch instead of one whole period later."""
+    read_ahead_s: float = 0.002
+    """Between ticks the worker reads, decodes and queues what has arrived every this long
+    (0: only at ticks), so that a tick has only the newest profiles left to decode: the same
+    CPU per profile, off the path from tick to publication."""
+    publish_intensity: bool = False
+    publish_profile_index: bool = False
+    inline_sensor: bool | None = None
+    """Read the sensor in the worker at each tick instead of in a reader thread (None: when the
+    driver's records are ``stamped_on_receipt``, e.g. by the kernel; then reading late loses no
+    timing, the socket buffer holds the tick's datagrams, and a thread woken per profile,
+    competing for the GIL with the worker, is saved)."""
+    gil_switch_interval_s: float | None = 0.0005
+    """Python's thread switch interval while the pipeline runs, for sensor drivers that stamp
+    a record when their thread gets the GIL back after the receive call: with Python's default
+    5 ms a busy worker delays those stamps by up to 5 ms, which the sensor clock fit sees as
+    transport jitter (its jump tolerance is 2 ms). Drivers whose stamps come from the kernel
+    (``kernel_stamps``, the UDP drivers on Linux) do not need it, and the interval is left
+    alone for them: every forced switch costs the worker a wake-up. None: always leave it."""
+
+
+class LatencyWindow:
+    """The latest ``size`` per-profile latencies of each stage (ns), for percentiles in ``stats``.
+
+    Stages: ``transport`` (estimated exposure to the driver's receipt: sensor latency plus the
+    link), ``wait`` (receipt to the worker's tick that paired it: batching and waiting for the
+    robot state after the exposure), ``process`` (that tick to the publish call returning:
+    pairing, alignment, encoding, zenoh put) and ``total`` (exposure to published).
+    """
+
+    STAGES = ("transport", "wait", "process", "total")
+
+    def __init__(self, size: int = 20000) -> None:
+        self.size = size
+        self._buf = np.zeros((len(self.STAGES), size), dtype=np.int64)
+        self._n = 0
+        self._lock = threading.Lock()
+
+    def add(self, exposure_ns: NDArray[np.int64], arrival_ns: NDArray[np.int64], tick_ns: int,
+            done_ns: int) -> None:  # fmt: skip
+        k = min(int(exposure_ns.shape[0]), self.size)
+        if k == 0:
+            return
+        e, a = exposure_ns[-k:], arrival_ns[-k:]
+        rows = np.stack([a - e, tick_ns - a, np.full(k, done_ns - tick_ns), done_ns - e])
+        with self._lock:
+            start = self._n % self.size
+            first = min(k, self.size - start)
+            self._buf[:, start : start + first] = rows[:, :first]
+            self._buf[:, : k - first] = rows[:, first:]
+            self._n += k
+
+    def summary(self) -> dict[str, dict[str, float]]:
+        """p50, p99 and max of each stage in ms over the window (empty before any batch)."""
+        with self._lock:
+            data = self._buf[:, : min(self._n, self.size)].astype(np.float64) * 1e-6
+        if data.shape[1] == 0:
+            return {}
+        p50, p99 = np.percentile(data, [50.0, 99.0], axis=1)
+        mx = data.max(axis=1)
+        return {
+            st: {
+                "p50": round(float(p50[i]), 3),
+                "p99": round(float(p99[i]), 3),
+                "max": round(float(mx[i]), 3),
+            }
+            for i, st in enumerate(self.STAGES)
+        }
+
+
+class _StepCpu:
+    """Adds the calling thread's CPU time inside ``with`` to one step's total (ns). One object
+    per step, reused: no allocation on the worker's path; steps do not nest."""
+
+    __slots__ = ("_t0", "ns")
+
+    def __init__(self) -> None:
+        self.ns = 0
+        self._t0 = 0
+
+    def __enter__(self) -> None:
+        self._t0 = time.thread_time_ns()
+
+    def __exit__(self, *exc: object) -> None:
+        self.ns += time.thread_time_ns() - self._t0
+
+
+_STEPS = ("read", "pair", "align", "publish")
+
+
+def _name_os_thread(name: str) -> None:
+    """Give the calling thread its name at the OS level too (Linux, 15 bytes), so that
+    ``top -H``, ``ps -L`` and ``/proc/<pid>/task/*/comm`` tell the pipeline's threads apart."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(15, name.encode("ascii", "replace")[:15], 0, 0, 0)  # PR_SET_NAME
+    except (OSError, AttributeError):  # no prctl: a cosmetic loss only
+        pass
+
+
+class _Reader(Generic[T]):
+    """A thread that moves records from a driver into a bounded queue.
+
+    The queue is a ``deque`` with one producer (this thread) and one consumer (the worker):
+    ``append`` and ``popleft`` are atomic, so no lock or condition is needed per record (a
+    ``queue.Queue`` costs both on each side, thousands of times a second). The bound is checked
+    before appending; the consumer only ever shortens the deque, so it is never exceeded.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        device: Device[T],
+        sink: deque[T],
+        maxsize: int,
+        on_drop: Callable[[], None],
+        on_fail: Callable[[BaseException], None],
+        signal: threading.Event | None = None,
+    ) -> None:
+        self.device = device
+        self.signal = signal
+        self.sink = sink
+        self.maxsize = maxsize
+        self._on_drop = on_drop
+        self._on_fail = on_fail
+        self._stop = threading.Event()
+        self.errors = 0
+        self.thread = threading.Thread(target=self._run, name=f"reader-{name}", daemon=True)
+
+    def start(self) -> None:
+        self.thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def join(self, timeout: float) -> None:
+        self.thread.join(timeout)
+
+    def _run(self) -> None:
+        _name_os_thread(self.thread.name)
+        sink, maxsize, read, signal = self.sink, self.maxsize, self.device.read, self.signal
+        try:
+            while not self._stop.is_set():
+                try:
+                    rec = read(timeout=0.05)
+                except DriverError as exc:
+                    # The driver reconnects by itself; back off a little and keep going.
+                    self.errors += 1
+                    log.warning("%s: %s", self.device.kind, exc)
+                    self._stop.wait(0.1)
+                    continue
+                if rec is None:
+                    continue
+                if len(sink) < maxsize:
+                    sink.append(rec)
+                    if signal is not None and not signal.is_set():
+                        signal.set()  # (set() takes a lock and notifies even when set)
+                else:
+                    self._on_drop()
+        except BaseException as exc:
+            log.exception("%s reader failed", self.device.kind)
+            self._on_fail(exc)
+
+
+class Pipeline:
+    """Wire devices, the pairer and the publisher together; start/stop, counters, health."""
+
+    def __init__(
+        self,
+        sensor: Device[Profile],
+        robot: Device[RobotState],
+        pairer: Pairer,
+        setup: AlignmentSetup,
+        publish: Callable[..., int] | None,
+        table: Device[TableState] | None = None,
+        settings: PipelineSettings | None = None,
+        publish_status: Callable[[dict[str, Any]], None] | None = None,
+        on_batch: Callable[[PairedBatch], None] | None = None,
+    ) -> None:
+        """``publish`` receives aligned batches (``DaemonZenoh.publish_cloud``'s signature);
+        ``on_batch`` receives every paired batch before alignment (calibration procedures
+        record them). Either may be None."""
+        self.settings = settings or PipelineSettings()
+        self.sensor, self.robot, self.table = sensor, robot, table
+        self.pairer = pairer
+        self._setup = setup
+        self._publish = publish
+        self._publish_status = publish_status
+        self._on_batch = on_batch
+        s = self.settings
+        self._profiles: deque[Profile] = deque()
+        self._robot_q: deque[RobotState] = deque()
+        self._table_q: deque[TableState] = deque()
+        self.dropped: Counter[str] = Counter()
+        self.published_profiles = 0
+        self.published_points = 0
+        self.published_batches = 0
+        self.robot_states_dropped = 0
+        self._lock = threading.Lock()
+        # Held by the worker while it drains, pairs and publishes one tick, and by stats(): the
+        # counters it reads then add up exactly (no profile is half-way between two of them).
+        self._tick_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._states_arrived = threading.Event()
+        self._failure: BaseException | None = None
+        self._last_progress_ns = time.monotonic_ns()
+        self._utc_offset_ns = time.time_ns() - time.monotonic_ns()
+        self._sensor_stamped = sensor.stamped_on_receipt
+        self.inline_sensor = self._sensor_stamped if s.inline_sensor is None else s.inline_sensor
+        self.read_errors: Counter[str] = Counter()
+        """Driver errors met while reading inline, by device (the drivers reconnect)."""
+        self._readers: list[_Reader[Any]] = []
+        if not self.inline_sensor:
+            self._readers.append(
+                _Reader(
+                    "sensor",
+                    sensor,
+                    self._profiles,
+                    s.profile_queue,
+                    self._drop_profile,
+                    self._fail,
+                )
+            )
+        states: list[tuple[str, Device[Any], deque[Any]]] = [("robot", robot, self._robot_q)]
+        if table is not None:
+            states.append(("table", table, self._table_q))
+        for name, device, sink in states:
+            self._readers.append(
+                _Reader(
+                    name,
+                    device,
+                    sink,
+                    s.state_queue,
+                    self._drop_state,
+                    self._fail,
+                    self._states_arrived,
+                )
+            )
+        self._worker = threading.Thread(target=self._work, name="pipeline-worker", daemon=True)
+        self._started = False
+        self._saved_switch_interval: float | None = None
+        self.latency = LatencyWindow()
+        self.gc_pauses: Counter[int] = Counter()
+        """Garbage collections per generation that held every thread for more than 20 ms."""
+        self.slow_ticks = 0
+        """Ticks that took over ``_SLOW_TICK_NS`` from start to the last publish."""
+        self.state_waited_s = 0.0
+        """Wall time the worker spent at ticks waiting for the states of received profiles."""
+        self._cpu = {step: _StepCpu() for step in _STEPS}
+        """The worker's CPU time by step: reading the sensor, pairing, aligning, publishing."""
+        self.tick_ms_max = 0.0
+        self._gc_t0 = 0
+        self._tick_ns = 0
+
+    # --- counters and health ----------------------------------------------------------------
+    def _drop_profile(self) -> None:
+        with self._lock:
+            self.dropped["queue_full"] += 1
+
+    def _drop_state(self) -> None:
+        with self._lock:
+            self.robot_states_dropped += 1
+
+    def _fail(self, exc: BaseException) -> None:
+        self._failure = exc
+        self._stop.set()
+
+    @property
+    def failure(self) -> BaseException | None:
+        return self._failure
+
+    def healthy(self, stall_s: float = 2.0) -> bool:
+        """False when the worker has not made progress for ``stall_s`` (the watchdog then
+        withholds its ping) or a thread failed."""
+        if self._failure is not None:
+            return False
+        return (time.monotonic_ns() - self._last_progress_ns) < stall_s * 1e9
+
+    def stats(self) -> dict[str, Any]:
+        """Counters (JSON-friendly). ``received == published + sum(dropped) + pending``, exactly:
+        ``received`` counts the profiles the sensor reader handed to the pipeline (the driver's
+        own count, in ``sensor``, may be ahead by the one record the reader holds)."""
+        return self._stats(latency=True)
+
+    def _stats(self, latency: bool) -> dict[str, Any]:
+        with self._tick_lock:
+            p = self.pairer.stats()
+            published = self.published_profiles
+            points, batches = self.published_points, self.published_batches
+            queued = len(self._profiles)
+            with self._lock:
+                dropped = dict(self.dropped)
+        for reason, n in dict(p["dropped"]).items():  # type: ignore[call-overload]
+            dropped[reason] = dropped.get(reason, 0) + int(n)
+        received = int(p["received"]) + queued + dropped.get("queue_full", 0)  # type: ignore[call-overload]
+        pending = int(p["pending"]) + queued  # type: ignore[call-overload]
+        return {
+            "received": received,
+            "published": published,
+            "dropped": dropped,
+            "pending": pending,
+            "published_points": points,
+            "published_batches": batches,
+            "robot_states": self.robot.counters.received,
+            "robot_states_dropped": self.robot_states_dropped,
+            "sensor": self.sensor.health().counters.as_dict(),
+            "robot": self.robot.health().counters.as_dict(),
+            "table": None if self.table is None else self.table.health().counters.as_dict(),
+            "pairing": p,
+            "latency_ms": self.latency.summary() if latency else {},
+            "read_errors": dict(self.read_errors),
+            "gc_pauses_over_20ms": dict(self.gc_pauses),
+            "slow_ticks": self.slow_ticks,
+            "state_waited_s": round(self.state_waited_s, 4),
+            "worker_cpu_s": {k: round(c.ns * 1e-9, 4) for k, c in self._cpu.items()},
+            "tick_ms_max": round(self.tick_ms_max, 3),
+        }
+
+    def status(self) -> dict[str, Any]:
+        st = self._stats(latency=False)  # the worker publishes this: no percentiles to sort
+        devices: dict[str, Device[Any]] = {"sensor": self.sensor, "robot": self.robot}
+        if self.table is not None:
+            devices["table"] = self.table
+        setup = self._setup
+        return {
+            "state": "failed" if self._failure else ("running" if self._started else "stopped"),
+            "healthy": self.healthy(),
+            "calibrated": setup.calibrated,
+            "frame": setup.frame,
+            "devices": {k: d.health().state.value for k, d in devices.items()},
+            "received": st["received"],
+            "published": st["published"],
+            "dropped": st["dropped"],
+            "pending": st["pending"],
+            "time_utc_ns": time.time_ns(),
+        }
+
+    # --- calibration --------------------------------------------------------------------------
+    def set_setup(self, setup: AlignmentSetup) -> None:
+        """Swap the calibration in force; the next batch uses it (one reference assignment)."""
+        self._setup = setup
+
+    @property
+    def setup(self) -> AlignmentSetup:
+        return self._setup
+
+    # --- life cycle -----------------------------------------------------------------------------
+    def _on_gc(self, phase: str, info: dict[str, int]) -> None:
+        # A collection holds the GIL: every thread of the pipeline waits for it.
+        if phase == "start":
+            self._gc_t0 = time.monotonic_ns()
+            return
+        pause_ns = time.monotonic_ns() - self._gc_t0
+        if pause_ns > 20_000_000:
+            self.gc_pauses[info.get("generation", -1)] += 1
+            log.warning(
+                "garbage collection (generation %d) held the pipeline for %.0f ms",
+                info.get("generation", -1),
+                pause_ns * 1e-6,
+            )
+
+    def start(self) -> None:
+        gc.callbacks.append(self._on_gc)
+        interval = self.settings.gil_switch_interval_s
+        if interval is not None and not self._sensor_stamped:
+            self._saved_switch_interval = sys.getswitchinterval()
+            sys.setswitchinterval(min(interval, self._saved_switch_interval))
+        self._started = True
+        for r in self._readers:
+            r.start()
+        self._worker.start()
+
+    def stop(self, drain: bool = True, timeout_s: float = 5.0) -> None:
+        """Stop reading; with ``drain`` the worker publishes what it holds before ending.
+        Profiles that still lack robot states then are dropped and counted (``shutdown``)."""
+        if not self._started:
+            return
+        for r in self._readers:
+            r.stop()
+        for r in self._readers:
+            r.join(timeout_s)
+        self._drain_on_stop = drain
+        self._stop.set()
+        self._worker.join(timeout_s)
+        self._started = False
+        if self._on_gc in gc.callbacks:
+            gc.callbacks.remove(self._on_gc)
+        if self._saved_switch_interval is not None:
+            sys.setswitchinterval(self._saved_switch_interval)
+            self._saved_switch_interval = None
+
+    # --- worker ---------------------------------------------------------------------------------
+    def _read_sensor_inline(self) -> None:
+        """Everything the sensor driver holds now (inline mode), into the profile queue."""
+        if not self.inline_sensor:
+            return
+        read, sink, maxsize = self.sensor.read, self._profiles, self.settings.profile_queue
+        with self._cpu["read"]:
+            for _ in range(1_000_000):  # bounded: a flood cannot keep the worker here forever
+                try:
+                    rec = read(timeout=0.0)
+                except DriverError as exc:
+                    # The driver reconnects by itself; the next step tries again.
+                    self.read_errors[self.sensor.kind] += 1
+                    log.warning("%s: %s", self.sensor.kind, exc)
+                    return
+                if rec is None:
+                    return
+                if len(sink) < maxsize:
+                    sink.append(rec)
+                else:
+                    self._drop_profile()
+
+    def _drain(self, profiles_too: bool = True) -> None:
+        pairer = self.pairer
+        # States first: the profiles drained after them find their robot samples in place.
+        # Only what is there now: later arrivals wait for the next tick.
+        self._states_arrived.clear()
+        robot, table, profiles = self._robot_q, self._table_q, self._profiles
+        with self._cpu["pair"]:
+            for _ in range(len(robot)):
+                pairer.add_robot_state(robot.popleft())
+            for _ in range(len(table)):
+                pairer.add_table_state(table.popleft())
+            if profiles_too:
+                for _ in range(len(profiles)):
+                    pairer.add_profile(profiles.popleft())
+
+    def _poll(self) -> list[PairedBatch]:
+        with self._cpu["pair"]:
+            return self.pairer.poll()
+
+    def _pair(self, stopping: bool) -> list[PairedBatch]:
+        """This tick's batches: pair what arrived, then wait up to ``state_wait_s`` for the
+        states that received profiles still need (not while stopping)."""
+        self._read_sensor_inline()
+        self._drain()
+        batches = self._poll()
+        t0 = time.monotonic()
+        deadline = t0 + self.settings.state_wait_s
+        unpolled = False
+        while self.pairer.waiting_for_states and not stopping:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or not self._states_arrived.wait(remaining):
+                break
+            self._drain(profiles_too=False)
+            # Poll once the states reach every waiting profile, not at each state (a poll
+            # costs the same for one profile as for fifty).
+            unpolled = not self.pairer.states_cover_waiting()
+            if not unpolled:
+                batches.extend(self._poll())
+        if unpolled:
+            batches.extend(self._poll())  # what the states that came in time do cover
+        self.state_waited_s += time.monotonic() - t0
+        return self.pairer.merge(batches) if len(batches) > 1 else batches
+
+    def _emit(self, batch: PairedBatch) -> None:
+        if self._on_batch is not None:
+            self._on_batch(batch)
+        if self._publish is None:
+            self.published_batches += 1
+            self.published_profiles += batch.n_profiles
+            return
+        setup = self._setup
+        valid = batch.valid
+        frame = setup.frame
+        s = self.settings
+        with self._cpu["align"]:
+            xyz = align.align(
+                batch.y,
+                batch.z,
+                batch.profile_index,
+                batch.flange2base,
+                setup.sensor2flange,
+                base2table=setup.base2table if frame != "base" else None,
+                table_angle_rad=batch.table_angle if frame == "part" else None,
+                encoder_offset_rad=setup.encoder_offset_rad,
+                frame=frame,  # type: ignore[arg-type]
+                mask=valid,
+            )
+            intensity = (
+                batch.intensity[valid]
+                if s.publish_intensity and batch.intensity is not None
+                else None
+            )
+            pidx = batch.profile_index[valid] if s.publish_profile_index else None
+        t_first = int(batch.exposure_ns.min()) + self._utc_offset_ns
+        t_last = int(batch.exposure_ns.max()) + self._utc_offset_ns
+        with self._cpu["publish"]:
+            self._publish(xyz, t_first, t_last, batch.n_profiles, frame, intensity, pidx)
+        if batch.arrival_ns is not None:
+            self.latency.add(
+                batch.exposure_ns, batch.arrival_ns, self._tick_ns, time.monotonic_ns()
+            )
+        self.published_batches += 1
+        self.published_profiles += batch.n_profiles
+        self.published_points += int(xyz.shape[0])
+
+    def _wait_for_tick(self, tick: float) -> bool:
+        """Sleep until the monotonic time ``tick``, reading ahead meanwhile; True to stop."""
+        step = self.settings.read_ahead_s
+        while True:
+            now = time.monotonic()
+            if step <= 0 or tick - now <= step:
+                return self._stop.wait(max(0.0, tick - now))
+            if self._stop.wait(step):
+                return True
+            with self._tick_lock:
+                self._read_sensor_inline()
+                self._drain()
+
+    def _note_tick(
+        self, t0: int, t1: int, t2: int, cpu_ns: int, batches: list[PairedBatch]
+    ) -> None:
+        """Keep the longest tick; log a slow one with where its time went (its own CPU time
+        against the wall time tells waiting for a CPU or a lock from working)."""
+        ms = (t2 - t0) * 1e-6
+        self.tick_ms_max = max(self.tick_ms_max, ms)
+        if t2 - t0 > _SLOW_TICK_NS:
+            self.slow_ticks += 1
+            log.warning(
+                "slow tick: %.0f ms for %d profiles in %d batches (reading and pairing %.0f ms, "
+                "aligning and publishing %.0f ms; the worker's CPU time %.0f ms)",
+                ms,
+                sum(b.n_profiles for b in batches),
+                len(batches),
+                (t1 - t0) * 1e-6,
+                (t2 - t1) * 1e-6,
+                cpu_ns * 1e-6,
+            )
+
+    def _work(self) -> None:
+        _name_os_thread(self._worker.name)
+        period = self.settings.batch_s
+        next_status = time.monotonic() + self.settings.status_period_s
+        next_tick = time.monotonic() + period
+        try:
+            while True:
+                # Ticks on a fixed schedule (the work of a tick does not stretch the period,
+                # which would add to every profile's latency); missed ticks are not made up.
+                stopping = self._wait_for_tick(next_tick)
+                next_tick = max(next_tick + period, time.monotonic())
+                with self._tick_lock:
+                    self._tick_ns = t0 = time.monotonic_ns()
+                    cpu0 = time.thread_time_ns()
+                    batches = self._pair(stopping)
+                    if stopping:
+                        if getattr(self, "_drain_on_stop", True):
+                            batches.extend(self.pairer.flush())
+                    t1 = time.monotonic_ns()
+                    for b in batches:
+                        self._emit(b)
+                self._last_progress_ns = t2 = time.monotonic_ns()
+                self._note_tick(t0, t1, t2, time.thread_time_ns() - cpu0, batches)
+                if self._publish_status is not None and time.monotonic() >= next_status:
+                    next_status += self.settings.status_period_s
+                    self._publish_status(self.status())
+                if stopping:
+                    return
+        except BaseException as exc:
+            log.exception("pipeline worker failed")
+            self._failure = exc

@@ -1,0 +1,620 @@
+"""Pair every profile with the robot (and table) state at its exposure instant.
+
+Records come in any order from independent drivers. The :class:`Pairer`
+
+1. maps each profile's sensor timestamp onto the host clock (:class:`ClockMapper` per sensor,
+   unwrapping a wrapping counter first) and subtracts the configured sensor latency, which gives
+   the exposure instant on the host clock;
+2. maps that instant onto the robot controller's clock (the robot's own :class:`ClockMapper`,
+   inverted) and interpolates the robot samples there (:class:`RobotStateBuffer`), and likewise
+   for the rotary table when one is configured;
+3. releases profiles whose states are covered on both sides, in :class:`PairedBatch` objects
+   sorted by exposure time; a profile not covered yet waits (``max_wait_ns`` of host time after
+   its receipt) and is then dropped, counted by reason. Nothing is ever paired with an
+   extrapolated or guessed pose.
+
+In **encoder mode** the profiles carry the count of an encoder that the robot also reports
+(:meth:`Pairer.add_encoder_sample`, e.g. from an RTDE register, stamped with the controller
+clock). The profile's count is looked up among the robot's ``(count, controller time)`` samples,
+which puts the exposure directly on the controller clock: the sensor clock is not used. The
+counter must increase monotonically while profiles are taken (a trigger counter or an axis moving
+one way); samples that do not increase are ignored.
+
+Counters: ``received == paired + sum(dropped.values()) + pending`` holds after every call.
+Not thread-safe: one owner thread adds records and polls.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from wristscan.calib import kinematics
+from wristscan.daemon.sync.buffers import Reason, RobotStateBuffer, SampleBuffer, ScalarBuffer
+from wristscan.daemon.sync.clockmap import (
+    ClockConfig,
+    ClockMapper,
+    CounterUnwrapper,
+    unwrap_nearest,
+)
+from wristscan.drivers.records import Profile, RobotState, TableState
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["DROP_REASONS", "PairedBatch", "Pairer", "PairerConfig"]
+
+IntArray = NDArray[np.int64]
+FloatArray = NDArray[np.float64]
+
+# Per-profile status codes inside poll(): 0 ready, 1.. waiting, 100.. dropped now.
+_READY = 0
+_W_CLOCK = 1
+_W_ROBOT_CLOCK = 2
+_W_ROBOT = 3
+_W_TABLE_CLOCK = 4
+_W_TABLE = 5
+_W_ENCODER = 6
+_D_FIRST = 100
+_D_CLOCK = 100
+_D_BEFORE = 101
+_D_GAP = 102
+_D_TABLE_BEFORE = 103
+_D_TABLE_GAP = 104
+_D_ENC_BEFORE = 105
+_D_ENC_GAP = 106
+
+_REASON_OF: dict[int, str] = {
+    # A waiting profile that times out is dropped for what it was waiting for.
+    _W_CLOCK: "clock_unlocked",
+    _W_ROBOT_CLOCK: "robot_clock_unlocked",
+    _W_ROBOT: "no_robot_state_timeout",
+    _W_TABLE_CLOCK: "table_clock_unlocked",
+    _W_TABLE: "no_table_state_timeout",
+    _W_ENCODER: "no_encoder_sample_timeout",
+    _D_CLOCK: "clock_unlocked",
+    _D_BEFORE: "before_buffer",
+    _D_GAP: "gap_too_large",
+    _D_TABLE_BEFORE: "table_before_buffer",
+    _D_TABLE_GAP: "table_gap_too_large",
+    _D_ENC_BEFORE: "encoder_before_buffer",
+    _D_ENC_GAP: "encoder_gap_too_large",
+}
+
+
+def _status_of(**codes: int) -> IntArray:
+    """Lookup table ``Reason`` -> status code (``np.select`` costs ~0.3 ms a call: per poll)."""
+    table = np.full(max(Reason) + 1, _READY, dtype=np.int64)
+    for name, code in codes.items():
+        table[Reason[name]] = code
+    return table
+
+
+_ROBOT_STATUS = _status_of(NOT_YET=_W_ROBOT, BEFORE_BUFFER=_D_BEFORE, GAP=_D_GAP)
+_TABLE_STATUS = _status_of(NOT_YET=_W_TABLE, BEFORE_BUFFER=_D_TABLE_BEFORE, GAP=_D_TABLE_GAP)
+_ENCODER_STATUS = _status_of(NOT_YET=_W_ENCODER, BEFORE_BUFFER=_D_ENC_BEFORE)
+"""Encoder mode: a gap between counts is no reason by itself (the time gap is checked)."""
+
+DROP_REASONS: tuple[str, ...] = (
+    *sorted(set(_REASON_OF.values())),
+    "no_encoder_count",
+    "pending_overflow",
+    "flushed",
+)
+"""Every reason a profile can be dropped for (keys of ``Pairer.dropped``)."""
+
+
+@dataclass(frozen=True)
+class PairerConfig:
+    """Settings of a :class:`Pairer`. Times in ns, angles in rad."""
+
+    mode: Literal["clock", "encoder"] = "clock"
+    robot_model: str | kinematics.DHParams = "UR5e"
+    interpolation: Literal["joint", "tcp"] = "joint"
+    """``joint``: interpolate joints + forward kinematics; ``tcp``: interpolate the TCP pose."""
+    tcp_offset: tuple[float, ...] = (0.0,) * 6
+    """TCP configured on the controller (UR pose in the flange frame), for ``tcp`` mode."""
+    sensor_latency_ns: int = 0
+    """Exposure-to-timestamp latency of the sensors (measured by calib.latency). In encoder
+    mode it is subtracted from the instant the count was reached: a trigger-to-exposure delay
+    is a negative value."""
+    robot_latency_ns: int = 0
+    """Measurement-to-timestamp latency of the controller samples."""
+    table_latency_ns: int = 0
+    """Measurement-to-stamp latency of table readings (to receipt, if they carry no time)."""
+    sensor_time_modulus_ns: int | None = None
+    """Sensor timestamps wrap at this many ns (a 24-bit ms counter: ``2**24 * 10**6``)."""
+    encoder_modulus: int | None = None
+    """Encoder counts wrap at this value (``2**32`` for a 32-bit counter)."""
+    max_wait_ns: int = 200_000_000
+    """How long (host time after receipt) a profile may wait for the states it needs."""
+    robot_max_gap_ns: int = 20_000_000
+    """Largest spacing of two robot samples interpolated between (controller clock)."""
+    robot_capacity: int = 8192
+    use_table: bool = False
+    table_max_gap_ns: int = 200_000_000
+    table_period_rad: float | None = 2.0 * math.pi
+    """Unwrap table angles with this period (None: the angle does not wrap)."""
+    table_capacity: int = 4096
+    encoder_max_gap_ns: int = 20_000_000
+    encoder_capacity: int = 8192
+    max_pending: int = 100_000
+    """Profiles held at most; beyond, the oldest are dropped (bounded memory)."""
+    max_batch_profiles: int = 512
+    """Profiles per released batch at most (more ready at once are split). Only a backlog
+    reaches it (5 kHz in 10 ms ticks makes 50): 512 x 2048 points keep a batch's arrays in
+    the tens of MB, which the allocator reuses, where 4096 made 100 MB+ arrays that were
+    mapped and page-faulted afresh for every batch just when the pipeline was behind."""
+    sensor_clock: ClockConfig = field(default_factory=ClockConfig)
+    robot_clock: ClockConfig = field(default_factory=ClockConfig)
+    table_clock: ClockConfig = field(default_factory=ClockConfig)
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("clock", "encoder"):
+            raise ValueError(f"PairerConfig.mode must be 'clock' or 'encoder', not {self.mode!r}")
+        if self.max_wait_ns <= 0 or self.max_pending < 1 or self.max_batch_profiles < 1:
+            raise ValueError("PairerConfig: max_wait_ns, max_pending, max_batch_profiles > 0")
+
+
+@dataclass
+class PairedBatch:
+    """Profiles paired with their robot state, ready for vectorised alignment.
+
+    Per profile ``(P,)``: ``sensor_id``, ``frame_counter``, ``exposure_ns`` and ``arrival_ns``
+    (host monotonic: the estimated exposure and the driver's receipt), ``clock_uncertainty_ns``,
+    ``flange2base (P, 4, 4)``, ``table_angle`` (rad) or None.
+    Per point ``(N,)``: ``y``, ``z`` (m, sensor frame), ``valid``, ``intensity`` (only when every
+    profile has one), ``profile_index`` into the profiles; profile ``k`` owns points
+    ``offsets[k]:offsets[k + 1]``.
+    """
+
+    sensor_id: NDArray[np.int64]
+    frame_counter: IntArray
+    exposure_ns: IntArray
+    clock_uncertainty_ns: FloatArray
+    flange2base: FloatArray
+    table_angle: FloatArray | None
+    y: FloatArray
+    z: FloatArray
+    valid: NDArray[np.bool_]
+    intensity: NDArray[np.uint8] | None
+    profile_index: NDArray[np.uint32]
+    offsets: IntArray
+    arrival_ns: IntArray | None = None
+
+    @property
+    def n_profiles(self) -> int:
+        return int(self.exposure_ns.shape[0])
+
+    @property
+    def n_points(self) -> int:
+        return int(self.y.shape[0])
+
+
+def _concat(batches: list[PairedBatch]) -> PairedBatch:
+    """One batch of the profiles of ``batches``, in order (the points are copied once)."""
+    if len(batches) == 1:
+        return batches[0]
+
+    def cat(name: str) -> Any:
+        parts = [getattr(b, name) for b in batches]
+        return None if any(p is None for p in parts) else np.concatenate(parts)
+
+    sizes = [b.n_profiles for b in batches]
+    first = np.cumsum([0, *sizes[:-1]])
+    point_base = np.cumsum([0, *[b.n_points for b in batches[:-1]]])
+    index = np.concatenate(
+        [b.profile_index + np.uint32(f) for b, f in zip(batches, first, strict=True)]
+    )
+    offsets = np.concatenate(
+        [[0], *[b.offsets[1:] + p for b, p in zip(batches, point_base, strict=True)]]
+    ).astype(np.int64)
+    return PairedBatch(
+        sensor_id=cat("sensor_id"),
+        frame_counter=cat("frame_counter"),
+        exposure_ns=cat("exposure_ns"),
+        clock_uncertainty_ns=cat("clock_uncertainty_ns"),
+        flange2base=cat("flange2base"),
+        table_angle=cat("table_angle"),
+        y=cat("y"),
+        z=cat("z"),
+        valid=cat("valid"),
+        intensity=cat("intensity"),
+        profile_index=index,
+        offsets=offsets,
+        arrival_ns=cat("arrival_ns"),
+    )
+
+
+class Pairer:
+    """Pairs profiles with robot/table states; see the module docstring."""
+
+    def __init__(self, config: PairerConfig | None = None) -> None:
+        cfg = config or PairerConfig()
+        self.config = cfg
+        self._sensor_cfg = replace(cfg.sensor_clock, latency_ns=cfg.sensor_latency_ns)
+        self._sensor_clocks: dict[int, ClockMapper] = {}
+        self._sensor_unwrap: dict[int, CounterUnwrapper] = {}
+        self.robot_clock = ClockMapper(
+            replace(cfg.robot_clock, latency_ns=cfg.robot_latency_ns), name="robot clock"
+        )
+        self.table_clock = ClockMapper(
+            replace(cfg.table_clock, latency_ns=cfg.table_latency_ns), name="table clock"
+        )
+        self.robot = RobotStateBuffer(
+            cfg.robot_model,
+            cfg.interpolation,
+            cfg.robot_capacity,
+            cfg.robot_max_gap_ns,
+            tcp_offset=cfg.tcp_offset,
+        )
+        self.table = ScalarBuffer(cfg.table_capacity, cfg.table_max_gap_ns, cfg.table_period_rad)
+        self._table_on_device_clock: bool | None = None
+        # Encoder samples: key = unwrapped count, value = controller time (ns). The key gap is
+        # meaningless, so the buffer's own gap check is off and poll() checks the time gap.
+        self.encoder = SampleBuffer(1, cfg.encoder_capacity, max_gap_ns=1 << 62)
+        self._enc_last: int | None = None
+        # Pending profiles, in arrival order (parallel lists: cheap appends, one array per poll).
+        self._p_prof: list[Profile] = []
+        self._p_x: list[int] = []
+        self._p_epoch: list[int] = []
+        self._p_host: list[int] = []
+        self._p_sid: list[int] = []
+        self._now = -(1 << 62)
+        self.received = 0
+        self.paired = 0
+        self.waiting_for_states = 0
+        """Profiles the last :meth:`poll` left waiting only for robot or table states to arrive
+        (their clocks locked): a worker may wait briefly for those instead of a whole tick."""
+        self._need_ns: dict[str, int] = {}
+        """Per state stream (``robot``, ``table``): the newest device time a waiting profile
+        needs a sample at or after (see :meth:`states_cover_waiting`)."""
+        self.dropped: dict[str, int] = dict.fromkeys(DROP_REASONS, 0)
+        self.robot_states = 0
+        self.table_states = 0
+        self.encoder_samples = 0
+        self.batches = 0
+
+    # ------------------------------------------------------------------ input
+
+    @property
+    def pending(self) -> int:
+        """Profiles waiting for the states they need."""
+        return len(self._p_prof)
+
+    @property
+    def latest_host_ns(self) -> int:
+        """Newest host receive time seen on any stream (the pairer's notion of now)."""
+        return self._now
+
+    def sensor_unwrapper(self, sensor_id: int) -> CounterUnwrapper | None:
+        """The timestamp unwrapper of one sensor (None without ``sensor_time_modulus_ns``)."""
+        return self._sensor_unwrap.get(sensor_id)
+
+    def sensor_clock(self, sensor_id: int) -> ClockMapper:
+        """The clock mapper of one sensor (created on first use)."""
+        clk = self._sensor_clocks.get(sensor_id)
+        if clk is None:
+            clk = ClockMapper(self._sensor_cfg, name=f"sensor {sensor_id} clock")
+            self._sensor_clocks[sensor_id] = clk
+        return clk
+
+    def add_profile(self, profile: Profile) -> None:
+        """Queue a profile; it is released by a later :meth:`poll`."""
+        self.received += 1
+        host = profile.host_time_ns
+        if host > self._now:
+            self._now = host
+        sid = profile.sensor_id
+        if self.config.mode == "clock":
+            x = profile.sensor_time_ns
+            modulus = self.config.sensor_time_modulus_ns
+            if modulus is not None:
+                unw = self._sensor_unwrap.get(sid)
+                if unw is None:
+                    unw = self._sensor_unwrap[sid] = CounterUnwrapper(modulus)
+                x = unw(x, host)
+            epoch = self.sensor_clock(sid).feed(x, host)
+        else:
+            if profile.encoder is None:
+                self.dropped["no_encoder_count"] += 1
+                return
+            x, epoch = int(profile.encoder), 0
+        self._p_prof.append(profile)
+        self._p_x.append(x)
+        self._p_epoch.append(epoch)
+        self._p_host.append(host)
+        self._p_sid.append(sid)
+        excess = len(self._p_prof) - self.config.max_pending
+        if excess > 0:
+            self.dropped["pending_overflow"] += excess
+            self._keep(np.arange(excess, len(self._p_prof)))
+
+    def add_robot_state(self, state: RobotState) -> None:
+        """Add one controller sample (any order relative to profiles)."""
+        self.robot_states += 1
+        host = state.host_time_ns
+        if host > self._now:
+            self._now = host
+        x = round(state.controller_time_s * 1e9)
+        self.robot_clock.feed(x, host)
+        last = self.robot.buffer.last_ns
+        if last is not None and x < last - self.config.robot_clock.reorder_tolerance_ns:
+            # The controller clock went back (restart): older samples live on another clock.
+            # (A smaller step back is a reordered sample: the buffer refuses it.)
+            logger.warning("robot controller clock went back; robot buffer cleared")
+            self.robot.clear()
+            self.encoder.clear()
+            self._enc_last = None
+        self.robot.append(x, state.q, state.tcp_pose)
+
+    def add_table_state(self, state: TableState) -> None:
+        """Add one rotary-table reading (used when ``use_table``)."""
+        self.table_states += 1
+        host = state.host_time_ns
+        if host > self._now:
+            self._now = host
+        on_device = state.device_time_ns is not None
+        if self._table_on_device_clock is None:
+            self._table_on_device_clock = on_device
+        elif on_device != self._table_on_device_clock:
+            raise ValueError("table states must all carry a device time, or none")
+        if state.device_time_ns is not None:
+            x = int(state.device_time_ns)
+            self.table_clock.feed(x, host)
+        else:
+            x = host - self.config.table_latency_ns
+        last = self.table.buffer.last_ns
+        if last is not None and x < last - self.config.table_clock.reorder_tolerance_ns:
+            self.table.clear()
+        self.table.append(x, state.angle_rad)
+
+    def add_encoder_sample(self, count: int, controller_time_s: float, host_time_ns: int) -> None:
+        """Add one ``(encoder count, controller time)`` sample reported by the robot."""
+        self.encoder_samples += 1
+        if host_time_ns > self._now:
+            self._now = host_time_ns
+        c = int(count)
+        modulus = self.config.encoder_modulus
+        if modulus is not None and self._enc_last is not None:
+            c = int(unwrap_nearest(c, self._enc_last, modulus))
+        if self.encoder.append(c, (float(round(controller_time_s * 1e9)),)):
+            self._enc_last = c
+
+    # ------------------------------------------------------------------ output
+
+    def poll(self, now_ns: int | None = None) -> list[PairedBatch]:
+        """Release every pending profile that can be paired now; drop the hopeless and the
+        timed-out ones. ``now_ns`` (host monotonic) defaults to the newest receipt seen."""
+        P = len(self._p_prof)
+        if P == 0:
+            return []
+        now = self._now if now_ns is None else max(int(now_ns), self._now)
+        self._need_ns = {}
+        host = np.fromiter(self._p_host, np.int64, P)
+        x = np.fromiter(self._p_x, np.int64, P)
+        status = np.zeros(P, dtype=np.int64)
+        exposure = np.zeros(P, dtype=np.int64)
+        unc = np.zeros(P)
+        F = np.full((P, 4, 4), np.nan)
+        angle: FloatArray | None = np.full(P, np.nan) if self.config.use_table else None
+
+        if self.config.mode == "clock":
+            self._map_sensor_times(x, status, exposure, unc)
+            self._pair_robot_clock(status, exposure, F)
+        else:
+            self._pair_encoder(x, status, exposure, F)
+        if angle is not None:
+            self._pair_table(status, exposure, angle)
+
+        waiting = (status > _READY) & (status < _D_FIRST)
+        self.waiting_for_states = int(np.count_nonzero((status == _W_ROBOT) | (status == _W_TABLE)))
+        late = waiting & (now - host > self.config.max_wait_ns)
+        drop = (status >= _D_FIRST) | late
+        if np.any(drop):
+            codes, counts = np.unique(status[drop], return_counts=True)
+            for code, cnt in zip(codes.tolist(), counts.tolist(), strict=True):
+                self.dropped[_REASON_OF[code]] += cnt
+        ready = np.flatnonzero(status == _READY)
+        batches: list[PairedBatch] = []
+        if ready.shape[0]:
+            ready = ready[np.argsort(exposure[ready], kind="stable")]
+            step = self.config.max_batch_profiles
+            for k in range(0, ready.shape[0], step):
+                sel = ready[k : k + step]
+                batches.append(
+                    self._batch(sel, exposure, unc, F, None if angle is None else angle[sel], host)
+                )
+            self.paired += int(ready.shape[0])
+            self.batches += len(batches)
+        if ready.shape[0] or np.any(drop):
+            self._keep(np.flatnonzero(waiting & ~late))
+        return batches
+
+    def merge(self, batches: list[PairedBatch]) -> list[PairedBatch]:
+        """Consecutive batches joined (up to ``max_batch_profiles`` profiles each), in order."""
+        out: list[PairedBatch] = []
+        group: list[PairedBatch] = []
+        n = 0
+        for b in batches:
+            if group and n + b.n_profiles > self.config.max_batch_profiles:
+                out.append(_concat(group))
+                group, n = [], 0
+            group.append(b)
+            n += b.n_profiles
+        if group:
+            out.append(_concat(group))
+        return out
+
+    def flush(self, now_ns: int | None = None) -> list[PairedBatch]:
+        """Poll once more, then drop whatever still waits (reason ``flushed``)."""
+        out = self.poll(now_ns)
+        self.dropped["flushed"] += len(self._p_prof)
+        self._keep(np.zeros(0, dtype=np.int64))
+        return out
+
+    # ------------------------------------------------------------------ steps
+
+    def _map_sensor_times(
+        self, x: IntArray, status: IntArray, exposure: IntArray, unc: FloatArray
+    ) -> None:
+        sid = np.fromiter(self._p_sid, np.int64, x.shape[0])
+        epoch = np.fromiter(self._p_epoch, np.int64, x.shape[0])
+        groups: list[tuple[tuple[int, int], slice | IntArray]]
+        if sid.min() == sid.max() and epoch.min() == epoch.max():
+            groups = [((int(sid[0]), int(epoch[0])), slice(None))]
+        else:
+            key = np.stack([sid, epoch], axis=1)
+            uniq = np.unique(key, axis=0)
+            groups = [
+                ((int(s), int(e)), np.flatnonzero((sid == s) & (epoch == e))) for s, e in uniq
+            ]
+        for (s, e), g in groups:
+            clk = self._sensor_clocks[s]
+            if clk.is_locked(e):
+                exposure[g] = clk.to_host(x[g], e)
+                unc[g] = clk.uncertainty_ns(x[g], e)
+            elif e < clk.epoch:
+                status[g] = _D_CLOCK  # an old epoch that never locked never will
+            else:
+                status[g] = _W_CLOCK
+
+    def _robot_lookup(
+        self, t_robot: IntArray, status: IntArray, m: IntArray, F: FloatArray
+    ) -> None:
+        T, _, reason = self.robot.interpolate(t_robot)
+        status[m] = _ROBOT_STATUS[reason]
+        F[m] = T
+        self._note_need("robot", t_robot, reason)
+
+    def _pair_robot_clock(self, status: IntArray, exposure: IntArray, F: FloatArray) -> None:
+        m = np.flatnonzero(status == _READY)
+        if m.shape[0] == 0:
+            return
+        if not self.robot_clock.locked:
+            status[m] = _W_ROBOT_CLOCK
+            return
+        self._robot_lookup(self.robot_clock.to_device(exposure[m]), status, m, F)
+
+    def _pair_encoder(
+        self, x: IntArray, status: IntArray, exposure: IntArray, F: FloatArray
+    ) -> None:
+        cfg = self.config
+        count = x
+        if cfg.encoder_modulus is not None and self._enc_last is not None:
+            count = unwrap_nearest(x, self._enc_last, cfg.encoder_modulus)
+        i, s, reason = self.encoder.locate(count)
+        V = self.encoder.values[:, 0]
+        st = _ENCODER_STATUS[reason]
+        ok = st == _READY
+        t_robot = np.zeros(x.shape[0], dtype=np.int64)
+        if np.any(ok):
+            v0, v1 = V[i[ok]], V[i[ok] + 1]
+            st[ok] = np.where(v1 - v0 > cfg.encoder_max_gap_ns, _D_ENC_GAP, _READY)
+            t_robot[ok] = np.rint(v0 + (v1 - v0) * s[ok]).astype(np.int64) - cfg.sensor_latency_ns
+        status[:] = st
+        m = np.flatnonzero(status == _READY)
+        if m.shape[0] == 0:
+            return
+        if not self.robot_clock.locked:
+            # Pairing would not need it, but the batch reports exposure on the host clock.
+            status[m] = _W_ROBOT_CLOCK
+            return
+        exposure[m] = self.robot_clock.to_host(t_robot[m])
+        self._robot_lookup(t_robot[m], status, m, F)
+
+    def _pair_table(self, status: IntArray, exposure: IntArray, angle: FloatArray) -> None:
+        m = np.flatnonzero(status == _READY)
+        if m.shape[0] == 0:
+            return
+        if self._table_on_device_clock:
+            if not self.table_clock.locked:
+                status[m] = _W_TABLE_CLOCK
+                return
+            t = self.table_clock.to_device(exposure[m])
+        else:
+            t = exposure[m]
+        v, _, reason = self.table.interpolate(t)
+        status[m] = _TABLE_STATUS[reason]
+        angle[m] = v
+        self._note_need("table", t, reason)
+
+    def _note_need(self, stream: str, t: IntArray, reason: NDArray[np.uint8]) -> None:
+        later = reason == Reason.NOT_YET
+        if later.any():
+            self._need_ns[stream] = int(t[later].max())
+
+    def states_cover_waiting(self) -> bool:
+        """Whether the states added since the last :meth:`poll` reach every profile it left
+        waiting for them: polling before would only repeat its work."""
+        for stream, need in self._need_ns.items():
+            last = (self.robot if stream == "robot" else self.table).buffer.last_ns
+            if last is None or last < need:
+                return False
+        return True
+
+    def _batch(
+        self,
+        sel: IntArray,
+        exposure: IntArray,
+        unc: FloatArray,
+        F: FloatArray,
+        angle: FloatArray | None,
+        host: IntArray,
+    ) -> PairedBatch:
+        profs = [self._p_prof[i] for i in sel.tolist()]
+        n = np.fromiter((p.y.shape[0] for p in profs), np.int64, len(profs))
+        offsets = np.zeros(len(profs) + 1, dtype=np.int64)
+        np.cumsum(n, out=offsets[1:])
+        intensity = None
+        if all(p.intensity is not None for p in profs):
+            intensity = np.concatenate([p.intensity for p in profs if p.intensity is not None])
+        return PairedBatch(
+            sensor_id=np.fromiter((p.sensor_id for p in profs), np.int64, len(profs)),
+            frame_counter=np.fromiter((p.frame_counter for p in profs), np.int64, len(profs)),
+            exposure_ns=exposure[sel],
+            clock_uncertainty_ns=unc[sel],
+            flange2base=F[sel],
+            table_angle=angle,
+            y=np.concatenate([p.y for p in profs]),
+            z=np.concatenate([p.z for p in profs]),
+            valid=np.concatenate([p.valid for p in profs]),
+            intensity=intensity,
+            profile_index=np.repeat(np.arange(len(profs), dtype=np.uint32), n),
+            offsets=offsets,
+            arrival_ns=host[sel],
+        )
+
+    def _keep(self, idx: IntArray) -> None:
+        ids = idx.tolist()
+        self._p_prof = [self._p_prof[i] for i in ids]
+        self._p_x = [self._p_x[i] for i in ids]
+        self._p_epoch = [self._p_epoch[i] for i in ids]
+        self._p_host = [self._p_host[i] for i in ids]
+        self._p_sid = [self._p_sid[i] for i in ids]
+
+    # ------------------------------------------------------------------ health
+
+    def stats(self) -> dict[str, object]:
+        """Counters and clock health (JSON-friendly) for the stats/status topics."""
+        out: dict[str, object] = {
+            "received": self.received,
+            "paired": self.paired,
+            "pending": self.pending,
+            "dropped": {k: v for k, v in self.dropped.items() if v},
+            "batches": self.batches,
+            "robot_states": self.robot_states,
+            "robot_states_rejected": self.robot.buffer.n_rejected,
+            "table_states": self.table_states,
+            "encoder_samples": self.encoder_samples,
+            "robot_clock": self.robot_clock.status(),
+            "sensor_clocks": {sid: c.status() for sid, c in self._sensor_clocks.items()},
+            "sensor_counter_wraps": {sid: u.n_wraps for sid, u in self._sensor_unwrap.items()},
+        }
+        if self.config.use_table and self._table_on_device_clock:
+            out["table_clock"] = self.table_clock.status()
+        return out

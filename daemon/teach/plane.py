@@ -1,0 +1,648 @@
+"""Plane frame teaching (``wristscan teach plane``) and distance sensing (``wristscan measure``)
+with the calibrated sensor (Borangiu et al. 2009, section 5).
+
+Plane teaching
+--------------
+"Instead of manually teaching at least 3 robot locations on the tilted plane, the laser sensor
+can be used as a distance sensor in order to teach the location with an automatic procedure."
+
+The operator places the sensor above the work surface (the laser line on it, anywhere in the
+measuring range). The robot then visits ``n_spots`` spots (3: a triangle, 4: a square) of side
+``spacing_m`` in the directions of the sensor's own X and Y axes, keeping its orientation; at each
+it stands still for ``dwell_s`` while the profiles are recorded. The next spot's depth is
+predicted from the surface seen so far, so the surface stays at the standoff of the first spot
+however it is tilted. Every profile's points go through the calibration in force
+(``flange2base @ sensor2flange``) into the base frame; :func:`wristscan.calib.plane.fit_plane`
+fits the plane robustly. The frame (:func:`wristscan.calib.plane.plane_frame`):
+
+* origin: where the sensor's Z axis at the first spot meets the plane;
+* Z: the plane normal, on the robot's side (where the sensor measured from);
+* X: towards the second spot (where its Z axis meets the plane), Y = Z x X.
+
+It is written as JSON and printed as a UR pose ``p[x, y, z, rx, ry, rz]`` to enter as a plane
+feature on the teach pendant. The fit statistics (residual RMS, peak-to-valley, the form error
+without the noise, the normal's 1-sigma) say whether the surface was flat enough: with a form
+error above ``max_form_error_m`` nothing is written and the procedure fails.
+
+Distance sensing
+----------------
+:func:`measure` records still profiles (or, with ``sweep_m``, a short move along the sensor's X
+axis) and reports the standoff (distance along the sensor's Z axis to the surface at the middle
+of the laser line), the surface normal under the sensor (the in-plane tilt only from a still
+profile: the component along X needs the sweep), the surface point in the base frame, and the
+sensor pose that would look at that point along the normal from a chosen standoff.
+
+Safety as in the calibration procedures: no motion unless ``[robot] motion_enabled`` and
+confirmed; speeds capped by the configuration; the driver refuses targets outside the workspace
+box; any failure while moving stops the robot and raises :class:`TeachAborted`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from contextlib import AbstractContextManager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from wristscan.calib import se3
+from wristscan.calib.plane import PlaneFit, fit_hyperplane, fit_plane, plane_frame
+from wristscan.daemon.calibrate.table import (
+    ProcedureAborted,
+    ProcedureError,
+    Progress,
+    load_sensor_calibration,
+    no_progress,
+    procedure_acquisition,
+    require_motion,
+    write_json_atomic,
+)
+from wristscan.daemon.config import Config
+from wristscan.daemon.io.calibfile import ur_pose_text
+
+if TYPE_CHECKING:
+    from wristscan.daemon.procedure.acquisition import Acquisition, Sweep
+    from wristscan.drivers.sim.cell import CellSpec
+    from wristscan.drivers.sim.scene import Scene
+__all__ = [
+    "PlaneOptions",
+    "PlaneResult",
+    "Spot",
+    "SurfaceMeasurement",
+    "TeachAborted",
+    "TeachError",
+    "measure",
+    "measure_surface",
+    "plane_from_spots",
+    "points_in_base",
+    "read_plane_frame",
+    "teach_plane",
+    "write_plane_frame",
+]
+
+log = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+
+FRAME_FORMAT = "wristscan-plane-frame"
+FRAME_VERSION = 1
+_MIN_SPOT_POINTS = 50
+_MAX_DEPTH_CORRECTION = 2.0  # times the spacing
+
+
+class TeachError(ProcedureError):
+    """A teaching procedure cannot run or failed; the message tells the operator why."""
+
+
+class TeachAborted(TeachError, ProcedureAborted):
+    """Stopped part way (protective stop, refused move, lost device, Ctrl-C); the robot was
+    stopped and nothing was written."""
+
+
+# --------------------------------------------------------------------------------------------
+# Shared machinery of the teaching procedures
+
+
+def points_in_base(
+    sweep: Sweep, sensor2flange: ArrayLike, max_points: int | None = None, seed: int = 0
+) -> tuple[FloatArray, NDArray[np.int64]]:
+    """Valid points of ``sweep`` in the base frame ``(M, 3)`` and their profile index ``(M,)``
+    (a seeded random subset of at most ``max_points``)."""
+    m = sweep.valid & np.isfinite(sweep.y) & np.isfinite(sweep.z)
+    prof = sweep.profile_index[m]
+    y, z = sweep.y[m], sweep.z[m]
+    if max_points is not None and prof.size > max_points:
+        keep = np.sort(np.random.default_rng(seed).choice(prof.size, max_points, replace=False))
+        prof, y, z = prof[keep], y[keep], z[keep]
+    s2b = sweep.flange2base @ np.asarray(sensor2flange, dtype=np.float64)
+    R = s2b[prof, :3, :3]
+    pts = R[:, :, 1] * y[:, None] + R[:, :, 2] * z[:, None] + s2b[prof, :3, 3]
+    return np.asarray(pts, dtype=np.float64), np.asarray(prof, dtype=np.int64)
+
+
+def mean_pose(T: FloatArray) -> FloatArray:
+    """Average of nearby poses ``(P, 4, 4)`` (mean translation, rotation of the mean matrix
+    projected back onto SO(3))."""
+    if T.shape[0] == 0:
+        raise ValueError("no poses to average")
+    R = T[:, :3, :3].mean(axis=0)
+    U, _, Vt = np.linalg.svd(R)
+    Rm = U @ Vt
+    if np.linalg.det(Rm) < 0:
+        U[:, -1] *= -1
+        Rm = U @ Vt
+    return np.asarray(se3.make(Rm, T[:, :3, 3].mean(axis=0)))
+
+
+class Mover:
+    """Moves the sensor to poses in the base frame through the robot's TCP; records still
+    profiles. Everything goes through an open :class:`Acquisition`."""
+
+    def __init__(self, acq: Acquisition, sensor2flange: ArrayLike, speed_m_s: float) -> None:
+        self.acq = acq
+        self.robot = acq.robot
+        self.s2f = np.asarray(sensor2flange, dtype=np.float64)
+        self.f2s = se3.invert(self.s2f)
+        r = acq.cfg.robot
+        self.speed = min(float(speed_m_s), float(r.max_speed_m_s))
+        self.accel = float(r.max_accel_m_s2)
+        self.tcp2flange = se3.pose_to_matrix(np.asarray(self.robot.tcp_offset(), dtype=float))
+
+    def tcp_pose(self, sensor2base: ArrayLike) -> FloatArray:
+        """UR pose of the TCP that puts the sensor at ``sensor2base``."""
+        return np.asarray(se3.matrix_to_pose(np.asarray(sensor2base) @ self.f2s @ self.tcp2flange))
+
+    def move_sensor(self, sensor2base: ArrayLike, speed_m_s: float | None = None) -> None:
+        speed = self.speed if speed_m_s is None else min(float(speed_m_s), self.speed)
+        self.robot.move_l(self.tcp_pose(sensor2base), speed, self.accel)
+
+
+def teach_acquisition(
+    cfg: Config, acquisition: Acquisition | None = None
+) -> AbstractContextManager[Acquisition]:
+    """:func:`~.calib_table.procedure_acquisition` for the teaching procedures: a device that
+    does not answer in time is tried again (a controller busy starting up); a device failure
+    becomes a :class:`TeachError`."""
+    return procedure_acquisition(cfg, acquisition, attempts=3, open_error=TeachError)
+
+
+def record_still(acq: Acquisition, dwell_s: float, settle_s: float = 0.05) -> Sweep:
+    """Profiles recorded for ``dwell_s`` while the robot stands still (after ``settle_s``)."""
+    time.sleep(settle_s)
+    with acq.record() as rec:
+        time.sleep(dwell_s)
+    sweep = rec.result()
+    if sweep.n_profiles == 0:
+        raise TeachError(
+            "no profile was paired with a robot pose while standing still (wristscan run -v "
+            "shows the synchroniser's counters)"
+        )
+    return sweep
+
+
+def guarded(acq: Acquisition, what: str) -> AbstractContextManager[None]:
+    """Stop the robot when anything goes wrong inside the block; re-raise driver errors and
+    Ctrl-C as :class:`TeachAborted`."""
+    from wristscan.daemon.procedure.acquisition import stop_on_failure
+
+    def abort(reason: str) -> TeachAborted:
+        return TeachAborted(f"{what} aborted: {reason}; the robot was stopped")
+
+    # A failed fit (ValueError) while moving aborts too; the table is not used here.
+    return stop_on_failure(acq, abort, (ValueError,), table=False)
+
+
+# --------------------------------------------------------------------------------------------
+# Distance sensing
+
+
+@dataclass(frozen=True)
+class SurfaceMeasurement:
+    """The surface under the sensor (SI units; base frame unless named ``_sensor``)."""
+
+    standoff_m: float
+    """Distance along the sensor's Z axis to the surface (at the middle of the laser line)."""
+    point: FloatArray
+    """(3,) that surface point."""
+    normal: FloatArray
+    """(3,) unit surface normal, towards the sensor."""
+    normal_sensor: FloatArray
+    """(3,) the same in the sensor frame."""
+    full_normal: bool
+    """False for a still measurement: the normal's component along the sensor's X axis is not
+    observed (the normal is the one in the laser plane)."""
+    incidence_deg: float
+    """Angle between the sensor's Z axis and the normal (0: looking straight at the surface)."""
+    rms_m: float
+    n_points: int
+    n_profiles: int
+    sensor2base: FloatArray
+    """(4, 4) sensor pose (the mean over the profiles used)."""
+
+    def normal_view(self, standoff_m: float | None = None) -> FloatArray:
+        """``sensor2base`` looking at :attr:`point` along the normal from ``standoff_m``
+        (default: the current standoff), its X axis as close to the current one as possible."""
+        d = self.standoff_m if standoff_m is None else float(standoff_m)
+        z = -self.normal
+        x0 = self.sensor2base[:3, 0]
+        x = x0 - (x0 @ z) * z
+        if np.linalg.norm(x) < 1e-6:
+            x = self.sensor2base[:3, 1] - (self.sensor2base[:3, 1] @ z) * z
+        x = x / np.linalg.norm(x)
+        return np.asarray(se3.make(np.column_stack([x, np.cross(z, x), z]), self.point - d * z))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "standoff_m": self.standoff_m,
+            "point_m": self.point.tolist(),
+            "normal": self.normal.tolist(),
+            "normal_sensor": self.normal_sensor.tolist(),
+            "full_normal": self.full_normal,
+            "incidence_deg": self.incidence_deg,
+            "rms_m": self.rms_m,
+            "n_points": self.n_points,
+            "n_profiles": self.n_profiles,
+            "sensor2base": self.sensor2base.tolist(),
+            "sensor_pose_ur": se3.matrix_to_pose(self.sensor2base).tolist(),
+        }
+
+
+def measure_surface(
+    sweep: Sweep,
+    sensor2flange: ArrayLike,
+    *,
+    swept: bool = False,
+    max_points: int = 20_000,
+) -> SurfaceMeasurement:
+    """The surface under the sensor from ``sweep`` (see the module doc). ``swept``: the
+    profiles come from a move along the sensor's X axis, so the full normal is fitted (a plane);
+    otherwise a line in the laser plane. Raises :class:`TeachError` without enough points."""
+    s2f = np.asarray(sensor2flange, dtype=np.float64)
+    pts, prof = points_in_base(sweep, s2f, max_points)
+    if pts.shape[0] < _MIN_SPOT_POINTS:
+        raise TeachError(f"only {pts.shape[0]} valid points: no surface within the measuring range")
+    s2b_all = sweep.flange2base @ s2f
+    S = mean_pose(s2b_all[np.unique(prof)])
+    origin, zaxis = S[:3, 3], S[:3, 2]
+    if swept:
+        fit = fit_plane(pts)
+        n = np.asarray(fit.normal)
+        if float(n @ (origin - fit.point)) < 0:
+            n = -n
+        try:
+            point = fit.intersect_line(origin, zaxis)
+        except ValueError:
+            raise TeachError("the sensor's Z axis runs parallel to the surface") from None
+        rms, n_in = fit.rms, fit.n_inliers
+        n_s = S[:3, :3].T @ n
+    else:
+        local = (pts - origin) @ S[:3, :3]  # sensor frame: x ~ 0, (y, z) in the laser plane
+        line = fit_hyperplane(local[:, 1:3])
+        nl = np.asarray(line.normal)
+        if nl[1] > 0:
+            nl = -nl  # towards the sensor (negative z)
+        if abs(float(nl[1])) < 1e-9:
+            raise TeachError("the laser line runs along the sensor's Z axis: no surface")
+        z0 = line.offset / float(line.normal[1])
+        n_s = np.array([0.0, nl[0], nl[1]])
+        n = S[:3, :3] @ n_s
+        point = origin + z0 * zaxis
+        rms, n_in = line.rms, line.n_inliers
+    standoff = float((point - origin) @ zaxis)
+    incidence = math.degrees(math.acos(min(1.0, abs(float(n @ zaxis)))))
+    return SurfaceMeasurement(
+        standoff_m=standoff,
+        point=np.asarray(point, dtype=np.float64),
+        normal=np.asarray(n / np.linalg.norm(n), dtype=np.float64),
+        normal_sensor=np.asarray(n_s / np.linalg.norm(n_s), dtype=np.float64),
+        full_normal=swept,
+        incidence_deg=incidence,
+        rms_m=float(rms),
+        n_points=int(n_in),
+        n_profiles=int(np.unique(prof).size),
+        sensor2base=S,
+    )
+
+
+def measure(
+    cfg: Config,
+    *,
+    dwell_s: float = 0.2,
+    sweep_m: float = 0.0,
+    speed_m_s: float = 0.01,
+    confirmed: bool = False,
+    acquisition: Acquisition | None = None,
+) -> SurfaceMeasurement:
+    """Measure the surface under the sensor on the devices of ``cfg``. With ``sweep_m`` > 0 the
+    sensor moves ``+-sweep_m / 2`` along its X axis and back (needs motion enabled and
+    ``confirmed``); otherwise nothing moves. ``acquisition``: an already built one (tests),
+    opened if need be and closed at the end, as by the other procedures."""
+    if sweep_m > 0:
+        require_motion(cfg, confirmed)
+    calib = load_sensor_calibration(cfg)
+    s2f = np.asarray(calib.transform, dtype=np.float64)
+    with teach_acquisition(cfg, acquisition) as acq:
+        still = record_still(acq, dwell_s, settle_s=0.0)
+        if sweep_m <= 0:
+            return measure_surface(still, s2f)
+        with guarded(acq, "measurement sweep"):
+            mover = Mover(acq, s2f, speed_m_s)
+            S = mean_pose(still.flange2base @ s2f)
+            half = 0.5 * sweep_m * S[:3, 0]
+            start, end = S.copy(), S.copy()
+            start[:3, 3] -= half
+            end[:3, 3] += half
+            mover.move_sensor(start)
+            with acq.record() as rec:
+                mover.move_sensor(end, speed_m_s)
+            sweep = rec.result()
+            mover.move_sensor(S)
+        return measure_surface(sweep, s2f, swept=True)
+
+
+# --------------------------------------------------------------------------------------------
+# Plane teaching
+
+
+@dataclass(frozen=True)
+class PlaneOptions:
+    """Settings of the plane-teaching procedure (SI units)."""
+
+    spacing_m: float = 0.03
+    """Distance between the spots."""
+    n_spots: int = 3
+    """3 (a triangle) or 4 (a square)."""
+    dwell_s: float = 0.25
+    """Recording time at each spot, standing still."""
+    speed_m_s: float = 0.05
+    """Speed between the spots (capped by the configuration)."""
+    max_form_error_m: float = 1e-4
+    """Flatness tolerance: the largest form error (noise averaged out) accepted."""
+    standoff_m: float | None = None
+    """Standoff kept at the spots (None: the one found at the start)."""
+    max_points_per_spot: int = 20_000
+    return_to_start: bool = True
+
+    def __post_init__(self) -> None:
+        if not self.spacing_m > 0:
+            raise ValueError("spacing_m must be positive")
+        if self.n_spots not in (3, 4):
+            raise ValueError("n_spots must be 3 or 4")
+        if not self.dwell_s > 0:
+            raise ValueError("dwell_s must be positive")
+        if not self.max_form_error_m > 0:
+            raise ValueError("max_form_error_m must be positive")
+
+    def layout(self) -> FloatArray:
+        """Spot offsets ``(n, 2)`` along the sensor's X and Y axes (m)."""
+        s = self.spacing_m
+        if self.n_spots == 3:
+            return np.array([[0.0, 0.0], [s, 0.0], [0.5 * s, 0.5 * math.sqrt(3.0) * s]])
+        return np.array([[0.0, 0.0], [s, 0.0], [s, s], [0.0, s]])
+
+
+@dataclass(frozen=True)
+class Spot:
+    """What the sensor saw standing at one spot."""
+
+    sensor2base: FloatArray
+    """(4, 4) mean sensor pose over the spot's profiles."""
+    points: FloatArray
+    """(M, 3) surface points (base frame)."""
+    n_profiles: int
+
+
+@dataclass(frozen=True)
+class PlaneResult:
+    fit: PlaneFit
+    frame2base: FloatArray
+    spots: tuple[Spot, ...]
+    max_form_error_m: float
+    duration_s: float = 0.0
+    sensor_calibration: str = ""
+    notes: tuple[str, ...] = field(default_factory=tuple)
+
+    @property
+    def flat(self) -> bool:
+        """The form error is within the tolerance."""
+        return bool(self.fit.form_error <= self.max_form_error_m)
+
+    @property
+    def ur_pose(self) -> FloatArray:
+        return np.asarray(se3.matrix_to_pose(self.frame2base))
+
+    @property
+    def origin(self) -> FloatArray:
+        return np.asarray(self.frame2base[:3, 3])
+
+    @property
+    def normal(self) -> FloatArray:
+        return np.asarray(self.frame2base[:3, 2])
+
+    def to_dict(self) -> dict[str, Any]:
+        f = self.fit
+        return {
+            "format": FRAME_FORMAT,
+            "version": FRAME_VERSION,
+            "frame": "base",
+            "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "frame2base": self.frame2base.tolist(),
+            "ur_pose": self.ur_pose.tolist(),
+            "ur_pose_text": ur_pose_text(self.ur_pose),
+            "origin_m": self.origin.tolist(),
+            "normal": self.normal.tolist(),
+            "flat": self.flat,
+            "fit": {
+                "n_points": int(f.residuals.shape[0]),
+                "n_inliers": f.n_inliers,
+                "rms_m": f.rms,
+                "peak_to_valley_m": f.peak_to_valley,
+                "form_error_m": f.form_error,
+                "form_bin_m": f.form_bin_m,
+                "max_form_error_m": self.max_form_error_m,
+                "sigma_normal_deg": math.degrees(f.sigma_normal_rad),
+                "sigma_offset_m": f.sigma_offset_m,
+                "extent_m": list(f.extent_m),
+            },
+            "spots": [
+                {
+                    "sensor2base": s.sensor2base.tolist(),
+                    "n_points": int(s.points.shape[0]),
+                    "n_profiles": s.n_profiles,
+                }
+                for s in self.spots
+            ],
+            "sensor_calibration": self.sensor_calibration,
+            "duration_s": self.duration_s,
+            "notes": list(self.notes),
+        }
+
+    def summary_lines(self) -> list[str]:
+        f = self.fit
+        o = self.origin * 1e3
+        rpy = np.degrees(_rpy(self.frame2base[:3, :3]))
+        verdict = "flat" if self.flat else "NOT FLAT ENOUGH"
+        return [
+            f"plane frame   {ur_pose_text(self.ur_pose)}",
+            f"  pendant     X {o[0]:.3f}  Y {o[1]:.3f}  Z {o[2]:.3f} mm   "
+            f"RX {self.ur_pose[3]:.4f}  RY {self.ur_pose[4]:.4f}  RZ {self.ur_pose[5]:.4f} rad "
+            f"(rotation vector; RPY {rpy[0]:.3f} {rpy[1]:.3f} {rpy[2]:.3f} deg)",
+            "  normal      "
+            + " ".join(f"{v:+.6f}" for v in self.normal)
+            + f"  (1 sigma {math.degrees(f.sigma_normal_rad) * 1e3:.2f} mdeg, offset "
+            f"{f.sigma_offset_m * 1e6:.2f} um)",
+            f"  fit         {f.n_inliers} of {f.residuals.shape[0]} points, RMS "
+            f"{f.rms * 1e6:.1f} um, peak-to-valley {f.peak_to_valley * 1e6:.1f} um, over "
+            f"{f.extent_m[0] * 1e3:.0f} x {f.extent_m[1] * 1e3:.0f} mm",
+            f"  flatness    form error {f.form_error * 1e6:.1f} um (tolerance "
+            f"{self.max_form_error_m * 1e6:.0f} um): {verdict}",
+        ]
+
+
+def _rpy(R: FloatArray) -> FloatArray:
+    """Roll, pitch, yaw (rad) with ``R = Rz(yaw) Ry(pitch) Rx(roll)`` (the pendant's RPY)."""
+    pitch = math.asin(max(-1.0, min(1.0, -float(R[2, 0]))))
+    roll = math.atan2(float(R[2, 1]), float(R[2, 2]))
+    yaw = math.atan2(float(R[1, 0]), float(R[0, 0]))
+    return np.array([roll, pitch, yaw])
+
+
+def plane_from_spots(
+    spots: list[Spot] | tuple[Spot, ...],
+    max_form_error_m: float = 1e-4,
+    **extra: Any,
+) -> PlaneResult:
+    """Fit the plane to the spots' points and build its frame (see the module doc)."""
+    if len(spots) < 2:
+        raise TeachError("a plane needs at least two spots (three to check it)")
+    # As many points from every spot: one spot's line must not outweigh the others.
+    n = min(s.points.shape[0] for s in spots)
+    rng = np.random.default_rng(0)
+    pts = np.concatenate(
+        [
+            s.points
+            if s.points.shape[0] == n
+            else s.points[np.sort(rng.choice(s.points.shape[0], n, replace=False))]
+            for s in spots
+        ]
+    )
+    try:
+        fit = fit_plane(pts)
+    except ValueError as exc:
+        raise TeachError(f"no plane fits the points: {exc}") from None
+    s0, s1 = spots[0].sensor2base, spots[1].sensor2base
+    try:
+        o = fit.intersect_line(s0[:3, 3], s0[:3, 2])
+        x_to = fit.intersect_line(s1[:3, 3], s1[:3, 2])
+        frame = plane_frame(fit.normal, o, x_to, s0[:3, 3])
+    except ValueError as exc:
+        raise TeachError(f"cannot build the plane frame: {exc}") from None
+    return PlaneResult(fit, frame, tuple(spots), max_form_error_m, **extra)
+
+
+def _spot(sweep: Sweep, s2f: FloatArray, max_points: int) -> Spot:
+    pts, prof = points_in_base(sweep, s2f, max_points)
+    if pts.shape[0] < _MIN_SPOT_POINTS:
+        raise TeachError(
+            f"only {pts.shape[0]} valid points at a spot: the surface left the measuring range"
+            " (use a smaller --spacing-mm or start closer to the middle of the range)"
+        )
+    S = mean_pose(sweep.flange2base[np.unique(prof)] @ s2f)
+    return Spot(S, pts, int(np.unique(prof).size))
+
+
+def teach_plane(
+    cfg: Config,
+    options: PlaneOptions | None = None,
+    *,
+    confirmed: bool = False,
+    progress: Progress | None = None,
+) -> PlaneResult:
+    """Run the plane-teaching procedure on the devices of ``cfg`` (module doc).
+
+    Raises :class:`~.calib_table.MotionNotConfirmed` before anything moves,
+    :class:`TeachError` when it cannot run or the result is unusable, :class:`TeachAborted`
+    when it stopped part way. The result may be not :attr:`~PlaneResult.flat`: the caller
+    decides (the CLI writes nothing then)."""
+    opts = options or PlaneOptions()
+    require_motion(cfg, confirmed)
+    calib = load_sensor_calibration(cfg)
+    s2f = np.asarray(calib.transform, dtype=np.float64)
+    report = progress or no_progress
+    layout = opts.layout()
+    total = len(layout) + 1
+    t0 = time.monotonic()
+    report(0, total, "connecting, waiting for paired profiles")
+    with teach_acquisition(cfg) as acq:
+        with guarded(acq, "plane teaching"):
+            mover = Mover(acq, s2f, opts.speed_m_s)
+            spots: list[Spot] = []
+            first_sweep = record_still(acq, opts.dwell_s, 0.0)
+            first = measure_surface(first_sweep, s2f)
+            start = first.sensor2base
+            standoff = opts.standoff_m if opts.standoff_m is not None else first.standoff_m
+            R = start[:3, :3]
+            # Depth model of the surface so far, for the next spot: after the first spot the
+            # in-plane tilt of its line, then the plane through every point so far.
+            n_est, p_est = first.normal, first.point
+            limit = _MAX_DEPTH_CORRECTION * opts.spacing_m
+            for i, (dx, dy) in enumerate(layout):
+                report(i + 1, total, f"spot {i + 1} of {len(layout)}")
+                lateral = start[:3, 3] + dx * R[:, 0] + dy * R[:, 1]
+                # Where the sensor's Z axis from there meets the surface estimate.
+                den = float(n_est @ R[:, 2])
+                depth = float((p_est - lateral) @ n_est) / den if abs(den) > 1e-6 else standoff
+                shift = float(np.clip(depth - standoff, -limit, limit))
+                if i == 0 and abs(shift) < 2e-4:
+                    sweep = first_sweep
+                else:
+                    mover.move_sensor(se3.make(R, lateral + shift * R[:, 2]))
+                    sweep = record_still(acq, opts.dwell_s)
+                spots.append(_spot(sweep, s2f, opts.max_points_per_spot))
+                if len(spots) >= 2:
+                    pre = fit_plane(np.concatenate([s.points for s in spots]))
+                    n_est, p_est = np.asarray(pre.normal), np.asarray(pre.point)
+            if opts.return_to_start:
+                report(total - 1, total, "back to the start")
+                mover.move_sensor(start)
+    result = plane_from_spots(
+        spots,
+        opts.max_form_error_m,
+        duration_s=time.monotonic() - t0,
+        sensor_calibration=str(cfg.calibration.file),
+    )
+    report(total, total, "done")
+    return result
+
+
+def write_plane_frame(path: str | Path, result: PlaneResult) -> Path:
+    """Write the frame and its statistics as JSON (atomically)."""
+    return write_json_atomic(path, json.dumps(result.to_dict(), indent=2) + "\n")
+
+
+def read_plane_frame(path: str | Path) -> dict[str, Any]:
+    """The JSON document of a plane frame file; ValueError when it is not one."""
+    doc = json.loads(Path(path).read_text(encoding="utf-8"))
+    if not isinstance(doc, dict) or doc.get("format") != FRAME_FORMAT:
+        raise ValueError(f"{path}: not a wristscan plane frame file")
+    return doc
+
+
+# --------------------------------------------------------------------------------------------
+# The simulated cell for the teaching procedures (tests, benchmarks, demonstrations)
+
+
+def simulated_cell_spec(
+    cfg: Config, scene: Scene, sensor2base_start: ArrayLike, **sensor_overrides: Any
+) -> CellSpec:
+    """The simulated cell of ``cfg`` with ``scene`` (:mod:`wristscan.drivers.sim.scenes_apps`)
+    and the arm placed so that the sensor starts at ``sensor2base_start`` (a ``CellSpec``)."""
+    import dataclasses
+
+    from wristscan.daemon.simcell.cell import cell_spec
+    from wristscan.drivers.sim.scenes_apps import start_q_for_sensor
+
+    spec = cell_spec(cfg, **sensor_overrides)
+    ctl = spec.controller
+    q = start_q_for_sensor(
+        ctl.model, sensor2base_start, spec.sensor.sensor2flange_matrix(), ctl.initial_q
+    )
+    ctl = dataclasses.replace(ctl, initial_q=tuple(float(v) for v in q))
+    return dataclasses.replace(spec, controller=ctl, scene=scene)
+
+
+def write_truth_calibration(cfg: Config, spec: CellSpec) -> Path:
+    """Write the simulated cell's true sensor2flange as the calibration file of ``cfg`` (as
+    ``wristscan demo`` does), so that a procedure runs with a perfect calibration."""
+    from wristscan.daemon.simcell.cell import write_truth_calibrations
+
+    if cfg.calibration.file is None:
+        raise TeachError(f"{cfg.source}: [calibration] file is not set")
+    truth = {"sensor2flange": spec.sensor.sensor2flange_matrix()}
+    return write_truth_calibrations(cfg, truth, method="ground truth of the simulated cell")[0]

@@ -1,0 +1,338 @@
+"""``wristscan record`` and ``wristscan status`` as subprocesses against a real zenoh publisher.
+
+The publisher is the daemon's own zenoh face (DaemonZenoh) on loopback, publishing synthetic
+batches whose coordinates encode their sequence number, and skipping every 5th sequence number
+to stand for batches lost on the way.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from wristscan.daemon.cli.app import app
+from wristscan.daemon.cloud.zenoh_io import DaemonZenoh, open_session
+from wristscan.daemon.io import ply as plyio
+
+PREFIX = "wristscan/rectest"
+B = 400  # points per batch
+PROFILES = 8
+SKIP_EVERY = 5  # every 5th sequence number is never published
+STATS = {
+    "received": 1000,
+    "paired": 900,
+    "pending": 0,
+    "dropped": {"no_robot_state": 60, "late": 40},
+    "batches": 90,
+}
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def batch_xyz(seq: int) -> np.ndarray:
+    xyz = np.empty((B, 3), np.float32)
+    xyz[:, 0] = seq * 1e-3
+    xyz[:, 1] = np.arange(B) * 1e-4
+    xyz[:, 2] = 0.25
+    return xyz
+
+
+def batch_intensity(seq: int) -> np.ndarray:
+    return ((np.arange(B) + seq) % 256).astype(np.uint8)
+
+
+@dataclass
+class Daemon:
+    endpoint: str
+    zenoh: DaemonZenoh
+
+    def args(self) -> list[str]:
+        return ["--prefix", PREFIX, "--connect", self.endpoint]
+
+
+@pytest.fixture
+def daemon() -> Iterator[Daemon]:
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    session = open_session(listen=[endpoint])
+    dz = DaemonZenoh(session, PREFIX, stats=lambda: STATS)
+    stop = threading.Event()
+
+    def publish() -> None:
+        k = 0
+        while not stop.is_set():
+            if dz.seq % SKIP_EVERY == SKIP_EVERY - 1:
+                dz.seq += 1  # a batch lost before reaching any subscriber
+            seq = dz.seq
+            dz.publish_cloud(
+                batch_xyz(seq),
+                t_first_ns=1_700_000_000_000_000_000 + seq,
+                t_last_ns=1_700_000_000_000_000_000 + seq + 1,
+                n_profiles=PROFILES,
+                frame_id="base",
+                intensity=batch_intensity(seq),
+                profile_index=np.arange(B, dtype=np.uint32) % PROFILES,
+            )
+            if k % 10 == 0:
+                dz.publish_status({"state": "running", "sensor": {"rate_hz": 1000.0}})
+            k += 1
+            stop.wait(0.01)
+
+    thread = threading.Thread(target=publish, name="test-publisher")
+    thread.start()
+    try:
+        yield Daemon(endpoint, dz)
+    finally:
+        stop.set()
+        thread.join()
+        dz.close()
+        session.close()
+
+
+def _cli(*args: str) -> list[str]:
+    return [sys.executable, "-m", "wristscan.daemon.cli", *args]
+
+
+def _run(args: list[str], cwd: Path, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(args, cwd=cwd, capture_output=True, text=True, timeout=timeout)
+
+
+def _summary(stdout: str) -> dict[str, str]:
+    rows = [line.split(None, 1) for line in stdout.splitlines() if line.strip()]
+    return {r[0]: r[1] for r in rows if len(r) == 2}
+
+
+def _seq_gaps(seqs: list[int]) -> int:
+    return int(np.sum(np.diff(seqs) - 1)) if len(seqs) > 1 else 0
+
+
+def _check_ply_batches(path: Path) -> list[int]:
+    """Every run of B points is one published batch, in order; returns their seqs."""
+    got = plyio.read_ply(path)
+    xyz, intensity = got["xyz"], got["intensity"]
+    n = xyz.shape[0]
+    seqs = []
+    for lo in range(0, n, B):
+        seq = round(float(xyz[lo, 0]) / 1e-3)
+        take = min(B, n - lo)
+        np.testing.assert_array_equal(xyz[lo : lo + take], batch_xyz(seq)[:take])
+        np.testing.assert_array_equal(intensity[lo : lo + take], batch_intensity(seq)[:take])
+        assert seq % SKIP_EVERY != SKIP_EVERY - 1, "a never-published batch appeared"
+        seqs.append(seq)
+    assert seqs == sorted(seqs)
+    return seqs
+
+
+def test_record_ply_stops_at_point_limit(daemon: Daemon, tmp_path: Path) -> None:
+    limit = 10 * B + 123  # ends inside a batch: the last one is cut
+    res = _run(
+        _cli("record", *daemon.args(), "--out", "scan.ply", "--points", str(limit)), tmp_path
+    )
+    assert res.returncode == 0, res.stderr
+    path = tmp_path / "scan.ply"
+    assert plyio.read_ply(path)["xyz"].shape == (limit, 3)
+    seqs = _check_ply_batches(path)
+    summary = _summary(res.stdout)
+    assert summary["file"] == str(path)
+    assert summary["points"] == str(limit)
+    assert summary["batches"] == str(len(seqs)) == "11"
+    # Every 5th seq is skipped by the publisher: the gaps seen are reported as lost batches.
+    assert summary["lost"].split()[0] == str(_seq_gaps(seqs)) != "0"
+    assert summary["stopped"] == "point limit reached"
+    header = plyio.read_ply_header(path)
+    assert "frame base" in header.comments
+    assert os.listdir(tmp_path) == ["scan.ply"]
+
+
+def test_record_npz_for_a_duration(daemon: Daemon, tmp_path: Path) -> None:
+    t0 = time.monotonic()
+    res = _run(_cli("record", *daemon.args(), "-o", "scan.npz", "--duration", "1.0"), tmp_path)
+    wall = time.monotonic() - t0
+    assert res.returncode == 0, res.stderr
+    summary = _summary(res.stdout)
+    assert summary["stopped"] == "duration reached"
+    assert 1.0 <= float(summary["duration"].split()[0]) < 2.0
+    assert wall < 30
+    with np.load(tmp_path / "scan.npz") as d:
+        seq = d["seq"].astype(np.int64)
+        assert seq.size >= 10  # ~80 batches/s are published
+        assert d["xyz"].shape == (seq.size * B, 3)
+        np.testing.assert_array_equal(d["n_points"], B)
+        np.testing.assert_array_equal(d["n_profiles"], PROFILES)
+        np.testing.assert_array_equal(d["frame_id"], "base")
+        np.testing.assert_array_equal(d["t_first_ns"], 1_700_000_000_000_000_000 + seq)
+        for i, s in enumerate(seq):
+            sl = slice(i * B, (i + 1) * B)
+            np.testing.assert_array_equal(d["xyz"][sl], batch_xyz(int(s)))
+            np.testing.assert_array_equal(d["intensity"][sl], batch_intensity(int(s)))
+            np.testing.assert_array_equal(d["profile_index"][sl], np.arange(B) % PROFILES)
+        lost = _seq_gaps(seq.tolist())
+    assert summary["points"] == str(seq.size * B)
+    assert summary["lost"].split()[0] == str(lost) != "0"
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_signal_finishes_the_file_cleanly(
+    daemon: Daemon, tmp_path: Path, sig: signal.Signals
+) -> None:
+    proc = subprocess.Popen(
+        _cli("record", *daemon.args(), "-o", "scan.ply"),
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stderr is not None
+        line = proc.stderr.readline()
+        assert line.startswith("recording wristscan/rectest/cloud"), line
+        time.sleep(0.7)
+        assert not (tmp_path / "scan.ply").exists()
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    summary = _summary(out)
+    assert summary["stopped"] == "signal"
+    seqs = _check_ply_batches(tmp_path / "scan.ply")
+    assert len(seqs) >= 3
+    assert summary["points"] == str(len(seqs) * B)
+    assert os.listdir(tmp_path) == ["scan.ply"]
+
+
+def test_status_shows_counters(daemon: Daemon, tmp_path: Path) -> None:
+    res = _run(_cli("status", *daemon.args()), tmp_path)
+    assert res.returncode == 0, res.stderr
+    out = res.stdout
+    assert "alive    yes" in out
+    assert "state           running" in out
+    assert "sensor.rate_hz  1000" in out
+    assert "dropped.no_robot_state  60" in out
+    assert (
+        "received 1000 = paired 900 + pending 0 + dropped 100 (no_robot_state 60, late 40)" in out
+    )
+
+    res = _run(_cli("status", *daemon.args(), "--json"), tmp_path)
+    assert res.returncode == 0, res.stderr
+    snap = json.loads(res.stdout)
+    assert snap["alive"] is True
+    assert snap["stats"] == STATS
+    assert snap["status"] == {"state": "running", "sensor": {"rate_hz": 1000.0}}
+
+
+def test_status_watch_until_sigint(daemon: Daemon, tmp_path: Path) -> None:
+    proc = subprocess.Popen(
+        _cli("status", *daemon.args(), "--json", "--watch"),
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout is not None
+        snaps = [json.loads(proc.stdout.readline()) for _ in range(3)]
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    assert all(s["alive"] and s["stats"] == STATS for s in snaps)
+
+
+def test_no_daemon_is_a_clear_error(tmp_path: Path) -> None:
+    nobody = ["--prefix", PREFIX, "--connect", f"tcp/127.0.0.1:{_free_port()}", "--timeout", "1"]
+    res = _run(_cli("record", *nobody, "-o", "scan.ply"), tmp_path)
+    assert res.returncode == 1
+    assert res.stderr.startswith("error: no wristscan daemon answered on wristscan/rectest")
+    assert len(res.stderr.strip().splitlines()) == 1 and "Traceback" not in res.stderr
+    assert os.listdir(tmp_path) == []
+    res = _run(_cli("status", *nobody), tmp_path)
+    assert res.returncode == 1
+    assert res.stderr.startswith("error: no wristscan daemon answered on wristscan/rectest")
+    assert len(res.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["-o", "scan.txt"], "--out must end in .ply or .npz"),
+        (["-o", "scan.npz", "--ascii"], "--ascii applies to .ply output only"),
+        (["-o", "missing/scan.ply"], "the folder of --out does not exist"),
+        (["-o", "scan.ply", "--mode", "router"], "--mode must be 'peer' or 'client'"),
+        (["-o", "scan.ply", "--prefix", "wristscan/*"], "--prefix must be a plain zenoh key"),
+    ],
+)
+def test_record_user_errors(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, args: list[str], message: str
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    res = CliRunner().invoke(app, ["record", "--connect", "tcp/127.0.0.1:9", *args])
+    assert res.exit_code == 2
+    assert message in res.output
+    assert os.listdir(tmp_path) == []
+
+
+def test_target_from_config_file(tmp_path: Path) -> None:
+    from wristscan.daemon.cli.status import resolve_target
+
+    src = Path(__file__).resolve().parents[3] / "config" / "sim.toml"
+    text = src.read_text().replace(
+        'listen = ["tcp/127.0.0.1:7447"]', 'listen = ["tcp/0.0.0.0:7500"]'
+    )
+    assert "tcp/0.0.0.0:7500" in text
+    cfg = tmp_path / "cell.toml"
+    cfg.write_text(text)
+    target = resolve_target(cfg, None, None, None)
+    assert (target.prefix, target.connect, target.mode) == (
+        "wristscan/sim",
+        ("tcp/127.0.0.1:7500",),
+        "peer",
+    )
+    target = resolve_target(cfg, "other/cell", ["tcp/10.0.0.1:7447"], "client")
+    assert (target.prefix, target.connect, target.mode) == (
+        "other/cell",
+        ("tcp/10.0.0.1:7447",),
+        "client",
+    )
+
+
+def test_breakdown_of_counters() -> None:
+    from wristscan.daemon.cli.status import breakdown, flatten, table
+
+    assert breakdown({"received": 10, "published": 7, "dropped": 3}) == (
+        "received 10 = published 7 + dropped 3"
+    )
+    # The term that makes the sum add up is chosen ...
+    assert breakdown(
+        {"received": 10, "published": 2, "paired": 6, "pending": 1, "dropped": {"late": 3}}
+    ) == ("received 10 = paired 6 + pending 1 + dropped 3 (late 3)")
+    # ... and a shortfall is shown, not hidden.
+    assert breakdown({"received": 10, "paired": 5, "dropped": {"late": 3}}) == (
+        "received 10 = paired 5 + dropped 3 (late 3)  [does not add up: +2]"
+    )
+    assert breakdown({"received": 10}) is None
+    assert breakdown({"paired": 10}) is None
+    rows = flatten({"a": {"b": 1.5, "c": {}}, "ok": True, "ids": [1, 2], "inf": float("inf")})
+    assert rows == [("a.b", "1.5"), ("a.c", "-"), ("ok", "yes"), ("ids", "[1,2]"), ("inf", "inf")]
+    assert table([("a", "1"), ("long.key", "2")]) == ["  a         1", "  long.key  2"]

@@ -1,0 +1,221 @@
+"""End to end on the simulated cell: ``wristscan run`` as a systemd-style service, a subscriber in
+another process decoding WSC1 from the documented layout, the real ur_rtde control client moving
+the robot over the tooling ball; then SIGHUP (bad and good reloads) and SIGTERM."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rtde_control
+
+from wristscan.calib import kinematics, se3
+from wristscan.calib.sphere import fit_sphere
+from wristscan.daemon.cloud.client import CloudClient
+from wristscan.daemon.config import load_config
+from wristscan.daemon.io.calibfile import (
+    Calibration,
+    Residuals,
+    RobotIdentity,
+    SensorIdentity,
+    write_calibration,
+)
+from wristscan.daemon.simcell.cell import dump_toml, free_sim_config, start_cell
+from wristscan.drivers.sim.scene import sensor_looking_down
+
+HELPER = Path(__file__).resolve().parents[2] / "helpers" / "wsc1_subscriber.py"
+
+
+def _calibration(transform: np.ndarray, method: str) -> Calibration:
+    return Calibration(
+        kind="sensor2flange",
+        transform=transform,
+        robot=RobotIdentity("UR5e"),
+        sensor=SensorIdentity("lpf1-udp", "1"),
+        method=method,
+        residuals=Residuals(rms_m=0.0),
+    )
+
+
+class NotifyListener:
+    """The systemd side of sd_notify: a real AF_UNIX datagram socket."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(str(path))
+        self.messages: list[str] = []
+
+    def wait_for(self, needle: str, timeout: float) -> list[str]:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if any(needle in m for m in self.messages):
+                return self.messages
+            self.sock.settimeout(max(0.01, deadline - time.monotonic()))
+            try:
+                self.messages.append(self.sock.recv(4096).decode())
+            except TimeoutError:
+                break
+        raise AssertionError(f"no {needle!r} from the daemon; got {self.messages}")
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+@pytest.mark.slow
+def test_daemon_end_to_end(tmp_path: Path) -> None:
+    doc = free_sim_config(
+        {"calibration": {"file": "sensor2flange.json"}, "zenoh": {"status_period_s": 0.5}}
+    )
+    cfg_path = tmp_path / "cell.toml"
+    cfg_path.write_text(dump_toml(doc))
+    cfg = load_config(cfg_path)
+    endpoint = cfg.zenoh.listen[0]
+    cell = start_cell(cfg)
+    notify = NotifyListener(tmp_path / "notify.sock")
+    daemon: subprocess.Popen[str] | None = None
+    subscriber: subprocess.Popen[str] | None = None
+    try:
+        truth = cell.truth()
+        s2f = np.array(truth["sensor2flange"])
+        ball = np.array(truth["ball_centre_base_m"])
+        radius = truth["ball_radius_m"]
+        write_calibration(tmp_path / "sensor2flange.json", _calibration(s2f, "simulation truth"))
+
+        # The sensor looks down at the ball from 0.1 m; sweeps run along sensor X (= base X).
+        def flange_at(dx: float) -> np.ndarray:
+            return sensor_looking_down(ball + np.array([dx, 0.0, 0.0]), 0.10) @ se3.invert(s2f)
+
+        assert cell.controller is not None
+        q0 = np.array(cell.controller.state()["q"])
+        q_start = kinematics.inverse_nearest("UR5e", flange_at(-0.02), q0)
+        assert cell.controller.set_joint_positions(q_start)
+
+        env = dict(os.environ, NOTIFY_SOCKET=str(notify.path), WATCHDOG_USEC="4000000")
+        env.pop("WATCHDOG_PID", None)  # the daemon's pid is not known before it starts
+        daemon = subprocess.Popen(
+            [sys.executable, "-m", "wristscan.daemon.cli", "run", "--config", str(cfg_path)],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        notify.wait_for("READY=1", timeout=60)
+
+        subscriber = subprocess.Popen(
+            [
+                sys.executable,
+                str(HELPER),
+                endpoint,
+                cfg.zenoh.prefix,
+                str(tmp_path / "got.npz"),
+                "12",
+            ],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        assert subscriber.stdout is not None
+        assert subscriber.stdout.readline().strip() == "ready"
+        time.sleep(0.5)
+
+        control = rtde_control.RTDEControlInterface(cfg.robot.host)
+        try:
+            end = se3.matrix_to_pose(flange_at(+0.02))
+            start = se3.matrix_to_pose(flange_at(-0.02))
+            # 10 mm/s: a 5 ms timing error (a starved host) moves points by 0.05 mm at most.
+            assert control.moveL(end.tolist(), 0.01, 0.5)
+            assert control.moveL(start.tolist(), 0.01, 0.5)
+        finally:
+            control.stopScript()
+            control.disconnect()
+        assert subscriber.wait(timeout=60) == 0
+        got = np.load(tmp_path / "got.npz")
+        assert list(got["encodings"]) == ["application/octet-stream;wsc1"]
+        assert set(got["frames"].tolist()) == {"base"}
+        seq = got["seq"]
+        assert np.all(np.diff(seq) == 1), "batches were lost on loopback"
+
+        # The ball's points, fitted by a sphere, land on its true centre.
+        xyz = got["xyz"].astype(np.float64)
+        near = np.linalg.norm(xyz - ball, axis=1) < radius + 0.002
+        assert near.sum() > 5000
+        fit = fit_sphere(xyz[near], radius=radius)
+        assert np.linalg.norm(fit.centre - ball) < 1e-4, fit.centre - ball
+
+        with CloudClient(cfg.zenoh.prefix, connect=[endpoint], subscribe=False) as client:
+            stats = client.query("stats")
+            assert stats["received"] > 0
+            assert stats["received"] == (
+                stats["published"] + sum(stats["dropped"].values()) + stats["pending"]
+            )
+            # Where the latency goes, per stage; the stages add up to the total.
+            lat = stats["latency_ms"]
+            assert set(lat) == {"transport", "wait", "process", "total"}
+            assert 0.0 <= lat["transport"]["p50"] <= lat["total"]["p50"] <= lat["total"]["p99"]
+            # The longest tick is kept; every driver read went well.
+            assert stats["tick_ms_max"] > 0.0 and stats["slow_ticks"] >= 0
+            assert stats["read_errors"] == {}
+            assert client.query("calibration")["method"] == "simulation truth"
+
+            # SIGHUP with a corrupt calibration: refused, the old one stays in force.
+            (tmp_path / "sensor2flange.json").write_text("{ not json")
+            daemon.send_signal(signal.SIGHUP)
+            notify.wait_for("reload refused", timeout=30)
+            assert client.query("calibration")["method"] == "simulation truth"
+            assert daemon.poll() is None
+
+            # SIGHUP with a good one: in force.
+            write_calibration(tmp_path / "sensor2flange.json", _calibration(s2f, "second"))
+            daemon.send_signal(signal.SIGHUP)
+            notify.wait_for("running (reloaded)", timeout=30)
+            assert client.query("calibration")["method"] == "second"
+
+        assert any(m.startswith("WATCHDOG=1") or "\nWATCHDOG=1" in m for m in notify.messages)
+        daemon.send_signal(signal.SIGTERM)
+        assert daemon.wait(timeout=30) == 0
+        notify.wait_for("STOPPING=1", timeout=5)
+    finally:
+        for proc in (subscriber, daemon):
+            if proc is not None and proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        if daemon is not None and daemon.stdout is not None:
+            log = daemon.stdout.read()
+            if log:
+                print(log[-4000:])
+        cell.stop()
+        notify.close()
+
+
+def test_run_refuses_a_bad_config_clearly(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text('schema_version = 1\n[sensor]\ndriver = "lpf1-udp"\nlatency_s = "fast"\n')
+    out = subprocess.run(
+        [sys.executable, "-m", "wristscan.daemon.cli", "run", "--config", str(bad)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert out.returncode == 2
+    assert "sensor.latency_s" in out.stderr + out.stdout
+    assert "Traceback" not in out.stderr + out.stdout
+
+
+def test_run_without_calibration_says_what_to_do(tmp_path: Path) -> None:
+    cfg_path = tmp_path / "cell.toml"
+    cfg_path.write_text(dump_toml(free_sim_config()))
+    out = subprocess.run(
+        [sys.executable, "-m", "wristscan.daemon.cli", "run", "--config", str(cfg_path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert out.returncode == 2
+    assert "wristscan calibrate sensor" in out.stderr + out.stdout

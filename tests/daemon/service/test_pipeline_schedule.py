@@ -1,0 +1,93 @@
+"""The worker's schedule: reading ahead between ticks, and the slow-tick counters.
+
+A real LPF1-over-UDP driver on loopback (kernel receipt stamps) receives datagrams from a plain
+UDP socket; the robot is a silent stand-in device (no states: the profiles stay pending, which
+is all the schedule needs)."""
+
+from __future__ import annotations
+
+import socket
+import time
+from typing import Any
+
+import numpy as np
+
+from wristscan.daemon.service.pipeline import AlignmentSetup, Pipeline, PipelineSettings
+from wristscan.daemon.sync.pairing import Pairer, PairerConfig
+from wristscan.drivers import lpf1
+from wristscan.drivers.base import Robot
+from wristscan.drivers.records import RobotState
+from wristscan.drivers.sensor_lpf1 import Lpf1UdpSensor
+
+
+class _SilentRobot(Robot):
+    """A controller that never sends a state (its link is up, the arm is off)."""
+
+    def _open(self) -> None:
+        pass
+
+    def _close(self) -> None:
+        pass
+
+    def _read_internal(self, timeout: float | None) -> RobotState | None:
+        time.sleep(min(timeout if timeout is not None else 0.05, 0.05))
+        return None
+
+    def move_l(self, pose: Any, speed: float, accel: float, asynchronous: bool = False) -> None:
+        raise NotImplementedError
+
+    def move_j(self, q: Any, speed: float, accel: float, asynchronous: bool = False) -> None:
+        raise NotImplementedError
+
+    def stop(self) -> None:
+        pass
+
+
+def _datagrams(n: int, n_points: int = 256) -> list[bytes]:
+    enc = lpf1.ProfileEncoder(1, lpf1.PointFormat.I16, x_uniform=(-0.025, 0.05 / (n_points - 1)))
+    z = np.full((n, n_points), 0.1)
+    t = (np.arange(n) * 1_000_000).astype(np.int64)
+    return [m[0] for m in enc.encode(np.arange(n), t, z, np.ones(z.shape, bool))]
+
+
+def _received_before_first_tick(read_ahead_s: float) -> tuple[int, dict[str, Any]]:
+    sensor = Lpf1UdpSensor(bind_host="127.0.0.1", port=0)
+    robot = _SilentRobot()
+    sensor.open()
+    robot.open()
+    assert sensor.stamped_on_receipt, "Linux stamps UDP receipt in the kernel"
+    pipeline = Pipeline(
+        sensor,
+        robot,
+        Pairer(PairerConfig()),
+        AlignmentSetup(np.eye(4)),
+        None,
+        settings=PipelineSettings(batch_s=1.0, read_ahead_s=read_ahead_s),
+    )
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        assert pipeline.inline_sensor
+        pipeline.start()
+        for g in _datagrams(20):
+            tx.sendto(g, sensor.local_address)
+        time.sleep(0.3)  # well before the first tick (1 s)
+        early = pipeline.stats()
+    finally:
+        pipeline.stop(drain=False)
+        tx.close()
+        sensor.close()
+        robot.close()
+    return int(early["received"]), early
+
+
+def test_the_worker_reads_ahead_between_ticks() -> None:
+    received, stats = _received_before_first_tick(read_ahead_s=0.02)
+    assert received == 20
+    # Read and queued for pairing: pending (no robot state), none lost, counters add up.
+    assert stats["pending"] == 20 and stats["published"] == 0 and not stats["dropped"]
+    assert stats["slow_ticks"] == 0 and stats["read_errors"] == {}
+
+
+def test_without_read_ahead_the_socket_is_read_at_ticks_only() -> None:
+    received, _ = _received_before_first_tick(read_ahead_s=0.0)
+    assert received == 0
