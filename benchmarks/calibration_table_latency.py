@@ -22,7 +22,7 @@ the fitted and the true axis, so direction errors count whichever way they lean)
 
 The latency is also compared with the time offset the pairing really had, measured from the
 simulator's ground truth during the sweeps (true instant of the robot pose each profile was
-given minus its true exposure; :func:`wristscan.daemon.calibrate.latency.pairing_truth_tap`). The
+given minus its true exposure; :func:`wristscan.daemon.simcell.scenarios.pairing_truth_tap`). The
 two agree only when the simulated sensor sends on time: a one-way clock mapping cannot tell a
 late send from a longer latency, and the simulated sensor sends late whenever it waits for the
 robot's or the table's truth (a busy host), so then the first target misses by that wait while
@@ -49,16 +49,9 @@ from wristscan.calib import se3
 from wristscan.daemon.calibrate.latency import (
     LatencyOptions,
     calibrate_latency,
-    pairing_truth_tap,
-    truth_offset_s,
 )
 from wristscan.daemon.calibrate.sensor import iso9283_axis_sigma
-from wristscan.daemon.calibrate.table import (
-    TableOptions,
-    calibrate_table,
-    simulated_cell_spec,
-    table_truth,
-)
+from wristscan.daemon.calibrate.table import TableOptions, calibrate_table
 from wristscan.daemon.config import Config, load_config
 from wristscan.daemon.io.calibfile import (
     Calibration,
@@ -68,6 +61,12 @@ from wristscan.daemon.io.calibfile import (
     write_calibration,
 )
 from wristscan.daemon.simcell.cell import dump_toml, free_sim_config
+from wristscan.daemon.simcell.scenarios import (
+    pairing_truth_tap,
+    table_ball_cell,
+    table_truth,
+    truth_offset_s,
+)
 from wristscan.drivers.sim.cell import CellSpec, SimulatedCell
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -124,7 +123,7 @@ def _spec(cfg: Config, start_above: str, seed: int) -> CellSpec:
     # The simulated sensor computes its exposures every 0.2 ms (default 1 ms): it then sends
     # them as soon as the robot's truth covers them, which keeps it from sending later than
     # its nominal latency (what it cannot help adds to the pairing offset, see the docs).
-    spec = simulated_cell_spec(cfg, start_above=start_above, batch_s=2e-4)
+    spec = table_ball_cell(cfg, start_above=start_above, batch_s=2e-4)
     return replace(spec, controller=replace(spec.controller, noise_seed=seed))
 
 

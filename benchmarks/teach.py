@@ -44,6 +44,7 @@ from wristscan.calib import kinematics, se3
 from wristscan.calib.edge import EdgeModel
 from wristscan.daemon.config import Config, load_config
 from wristscan.daemon.simcell.cell import dump_toml, free_sim_config
+from wristscan.daemon.simcell.scenarios import cell_with_scene, write_truth_calibration
 from wristscan.daemon.teach.edge import (
     EdgeOptions,
     learn_edge,
@@ -52,9 +53,7 @@ from wristscan.daemon.teach.edge import (
 )
 from wristscan.daemon.teach.plane import (
     PlaneOptions,
-    simulated_cell_spec,
     teach_plane,
-    write_truth_calibration,
 )
 from wristscan.daemon.teach.replay import ReplayOptions, parse_ur_pose, plan_replay, run_program
 from wristscan.drivers.sim.cell import SimulatedCell
@@ -89,7 +88,7 @@ def bench_plane(folder: Path) -> list[Figure]:
     cfg = _config(folder)
     scene, truth = tilted_plate_scene(tilt_deg=15.0, tilt_axis_deg=35.0)
     start = sensor_looking_down(truth.point + np.array([-0.02, -0.02, 0.0]), 0.1, 0.3)
-    spec = simulated_cell_spec(cfg, scene, start)
+    spec = cell_with_scene(cfg, scene, start)
     write_truth_calibration(cfg, spec)
     _log("plane: starting the cell")
     with SimulatedCell(spec):
@@ -121,7 +120,7 @@ def bench_edge_and_replay(folder: Path, length_mm: float) -> tuple[list[Figure],
     start = sensor_pose_at_edge(truth, phi0, 0.1) @ se3.make(
         se3.rot_x(math.radians(3)), (0.0, 0.0015, 0.003)
     )
-    spec = simulated_cell_spec(cfg, scene, start)
+    spec = cell_with_scene(cfg, scene, start)
     write_truth_calibration(cfg, spec)
     model = EdgeModel("step", height_m=(0.005, 0.08))
     figs: list[Figure] = []

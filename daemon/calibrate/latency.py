@@ -40,19 +40,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wristscan.calib.latency import LatencyEstimate, estimate_latency
-from wristscan.daemon.calibrate.table import (
-    BallMeasurement,
-    ProcedureError,
-    Progress,
-    ball_scanner,
-    guarded_motion,
-    load_sensor_calibration,
-    no_progress,
-    procedure_acquisition,
-    require_motion,
-    write_json_atomic,
-)
+from wristscan.daemon.calibrate.table import BallMeasurement, Progress, ball_scanner, no_progress
 from wristscan.daemon.config import Config
+from wristscan.daemon.io.atomic import write_atomic
+from wristscan.daemon.procedure.errors import ProcedureError
+from wristscan.daemon.procedure.in_force import load_sensor_calibration, procedure_acquisition
+from wristscan.daemon.procedure.motion import guarded_motion, require_motion
 
 if TYPE_CHECKING:
     from wristscan.daemon.procedure.acquisition import Acquisition
@@ -64,8 +57,6 @@ __all__ = [
     "calibrate_latency",
     "latency_report",
     "outlier_sweeps",
-    "pairing_truth_tap",
-    "truth_offset_s",
     "write_latency_result",
 ]
 
@@ -312,7 +303,7 @@ def _capped(speeds: Sequence[float], cap: float) -> list[float]:
 
 def write_latency_result(path: str | Path, result: LatencyResult) -> Path:
     """Write the JSON result file atomically (the configuration is never rewritten)."""
-    return write_json_atomic(path, json.dumps(result.to_dict(), indent=2) + "\n")
+    return write_atomic(path, json.dumps(result.to_dict(), indent=2) + "\n")
 
 
 # --------------------------------------------------------------------------------------------
@@ -410,70 +401,3 @@ def latency_report(result: LatencyResult, subtitle: str = "") -> Any:
     else:
         rep.text("(figures need matplotlib: pip install 'wristscan[plot]')")
     return rep
-
-
-# --------------------------------------------------------------------------------------------
-# Ground truth on the simulated cell (tests, benchmarks)
-
-
-def pairing_truth_tap(
-    cfg: Config, sensor_info: dict[str, Any], controller_start_ns: int
-) -> Acquisition:
-    """An :class:`~.acquire.Acquisition` on the simulated cell that also measures, from the
-    simulator's ground truth, the time offset the pairing really has: for every paired profile,
-    the true instant of the robot pose it was given minus its true exposure instant.
-
-    That is what ``[sensor] latency_s`` must absorb (exposure to stamp, the smallest transport
-    delay of the profiles, and the robot stream's own, see docs/sync.md), which the simulator's
-    nominal ``latency_s`` only equals when its sensor sends on time. ``sensor_info`` is
-    ``SimulatedSensor.info()``; ``controller_start_ns`` the host time of controller time 0.
-    Read the result with ``offset_s(acq, windows)`` (:func:`truth_offset_s`).
-    """
-    from wristscan.daemon.procedure.acquisition import Acquisition
-
-    t0 = int(sensor_info["t0_ns"])
-    period = float(sensor_info["period_ns"])
-    base = int(sensor_info["counter_base"])
-
-    class _Tap(Acquisition):
-        def __init__(self) -> None:
-            super().__init__(cfg)
-            self.truth_rows: list[NDArray[np.int64]] = []
-
-        def _offer(self, batch: Any) -> None:
-            # In the pipeline's worker thread, the one that feeds the robot clock: the mapping
-            # read here is the one the batch was paired with.
-            clock = self.pipeline.pairer.robot_clock
-            if clock.locked:
-                c = clock.to_device(batch.exposure_ns)
-                exposure = t0 + np.rint((batch.frame_counter + base) * period).astype(np.int64)
-                offset = (controller_start_ns + c) - exposure
-                self.truth_rows.append(np.stack([batch.exposure_ns, offset], axis=1))
-            super()._offer(batch)
-
-    return _Tap()
-
-
-def truth_offset_s(acq: Acquisition, result: LatencyResult) -> float:
-    """The true pairing offset (s) that ``result`` should have found, from an acquisition of
-    :func:`pairing_truth_tap`: per sweep, the median offset of the profiles that saw the ball;
-    averaged with the weights the least-squares fit gives the sweeps (the squared centred
-    velocity), so that an offset that wanders during the run is compared like with like. NaN
-    without data."""
-    rows = getattr(acq, "truth_rows", [])
-    if not rows:
-        return float("nan")
-    data = np.concatenate(rows)
-    V = np.stack([s.ball.velocity_m_s for s in result.sweeps])
-    w = np.sum((V - V.mean(axis=0)) ** 2, axis=1)
-    taus, weights = [], []
-    for s, wi in zip(result.sweeps, w, strict=True):
-        speed = float(np.linalg.norm(s.ball.velocity_m_s))
-        half = round(1e9 * min(1.0, 0.0127 / max(speed, 1e-3)))
-        inside = np.abs(data[:, 0] - s.ball.t_mid_ns) <= half
-        if inside.any():
-            taus.append(float(np.median(data[inside, 1])) * 1e-9)
-            weights.append(float(wi))
-    if not taus or sum(weights) <= 0:
-        return float("nan")
-    return float(np.average(taus, weights=weights))

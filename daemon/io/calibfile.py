@@ -36,12 +36,10 @@ calibration in force and swaps in a new one only when it reads cleanly.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import math
 import os
-import tempfile
 import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -55,7 +53,9 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError
 
 from wristscan.calib import se3
-from wristscan.daemon.config import format_validation_error
+from wristscan.daemon.config import Config, format_validation_error
+from wristscan.daemon.io.atomic import write_atomic
+from wristscan.daemon.io.urpose import ur_pose_text
 
 __all__ = [
     "FILE_FORMAT",
@@ -68,8 +68,8 @@ __all__ = [
     "Residuals",
     "RobotIdentity",
     "SensorIdentity",
+    "identities",
     "read_calibration",
-    "ur_pose_text",
     "write_calibration",
 ]
 
@@ -113,15 +113,6 @@ def _software_version() -> str:
         return "unknown"
 
 
-def ur_pose_text(pose: ArrayLike) -> str:
-    """``p[x, y, z, rx, ry, rz]`` as typed on a UR teach pendant: metres to 10 um, radians to
-    0.1 mrad."""
-    p = np.asarray(pose, dtype=np.float64).reshape(6) + 0.0  # + 0.0 turns -0.0 into 0.0
-    parts = [f"{v:.5f}" for v in p[:3]] + [f"{v:.4f}" for v in p[3:]]
-    parts = [s[1:] if s.startswith("-") and float(s) == 0.0 else s for s in parts]
-    return "p[" + ", ".join(parts) + "]"
-
-
 @dataclass(frozen=True)
 class RobotIdentity:
     """The robot a calibration belongs to."""
@@ -146,6 +137,14 @@ class SensorIdentity:
 
     def describe(self) -> str:
         return self.driver + (f" id {self.id}" if self.id else "")
+
+
+def identities(cfg: Config) -> tuple[RobotIdentity, SensorIdentity]:
+    """The robot and sensor of ``cfg`` as a calibration file records them."""
+    sid = cfg.sensor.sensor_id
+    return RobotIdentity(cfg.robot.model), SensorIdentity(
+        cfg.sensor.driver, None if sid is None else str(sid)
+    )
 
 
 @dataclass(frozen=True)
@@ -314,66 +313,21 @@ def _check_covariance(cov: FloatArray, names: Sequence[str]) -> None:
 # Writing
 
 
-def _fsync_dir(directory: Path) -> None:
-    """Make the rename durable. Some file systems refuse fsync on a folder: that only weakens
-    durability after a power cut, so it is logged, not raised."""
-    try:
-        fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
-    except OSError as exc:
-        log.warning("cannot open %s to fsync it: %s", directory, exc)
-        return
-    try:
-        os.fsync(fd)
-    except OSError as exc:
-        log.warning("fsync of folder %s failed: %s", directory, exc)
-    finally:
-        os.close(fd)
-
-
-def _umask() -> int:
-    """The process umask, read without changing it (``os.umask`` would, racing other threads)."""
-    try:
-        with open("/proc/self/status", encoding="ascii") as f:
-            for line in f:
-                if line.startswith("Umask:"):
-                    return int(line.split()[1], 8)
-    except (OSError, ValueError):
-        pass
-    return 0o022
-
-
 def write_calibration(path: str | os.PathLike[str], calib: Calibration) -> Path:
     """Write ``calib`` to ``path`` atomically and durably; returns the path.
 
     The document is built and checked as :func:`read_calibration` would check it before anything
     touches the disk (``CalibrationFileError`` or ``ValueError``); it goes to a temp file in the
     same folder, which is flushed, fsynced and renamed over ``path``; then the folder is fsynced.
-    On any failure the temp file is removed and the old file stays as it was. A replaced file
-    keeps its permissions; a new one gets ``0o666`` less the umask.
+    On any failure the temp file is removed and the old file stays as it was (the permissions
+    follow :mod:`wristscan.daemon.io.atomic`'s one policy).
     """
     target = Path(path)
     text = calib.to_json()
     # Never write what read_calibration would refuse (guards against a Calibration altered after
     # construction): the check runs before anything touches the disk.
     _parse(target, text.encode("utf-8"))
-    directory = target.parent if str(target.parent) else Path(".")
-    try:
-        mode = os.stat(target).st_mode & 0o777
-    except FileNotFoundError:
-        mode = 0o666 & ~_umask()
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=directory)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-            os.fchmod(f.fileno(), mode)
-        os.replace(tmp_name, target)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp_name)
-        raise
-    _fsync_dir(directory)
+    write_atomic(target, text)
     log.info("wrote %s calibration to %s", calib.kind, target)
     return target
 

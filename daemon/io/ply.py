@@ -30,7 +30,6 @@ in the same folder, is flushed and fsynced, then ``os.replace``-d over the final
 from __future__ import annotations
 
 import contextlib
-import functools
 import logging
 import os
 import shutil
@@ -43,12 +42,13 @@ from typing import IO, Any, Self
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from wristscan.daemon.io.atomic import atomic_writer
+
 __all__ = [
     "PlyElement",
     "PlyError",
     "PlyHeader",
     "PlyStreamWriter",
-    "atomic_writer",
     "read_ply",
     "read_ply_header",
     "write_ply",
@@ -104,54 +104,6 @@ class PlyHeader:
 
     def element(self, name: str) -> PlyElement | None:
         return next((e for e in self.elements if e.name == name), None)
-
-
-# ------------------------------------------------------------------------------------ atomic
-
-
-@contextlib.contextmanager
-def atomic_writer(path: str | os.PathLike[str]) -> Iterator[IO[bytes]]:
-    """Open a temporary file beside ``path`` for binary writing; on a clean exit it is flushed,
-    fsynced and renamed to ``path``, on an exception it is removed and ``path`` is untouched."""
-    final = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent)
-    try:
-        # mkstemp makes the file private (0600); the result should get the permissions a plain
-        # open() would have given it.
-        os.fchmod(fd, _new_file_mode())
-        with os.fdopen(fd, "wb") as f:
-            yield f
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, final)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-    _fsync_dir(final.parent)
-
-
-@functools.cache
-def _new_file_mode() -> int:
-    """0o666 minus the process umask. Read once: ``os.umask`` can only be read by setting it, so
-    doing it at every write would race with other threads creating files."""
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return 0o666 & ~mask
-
-
-def _fsync_dir(folder: Path) -> None:
-    """Make the rename itself durable (POSIX); not possible on every platform, so best effort."""
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 # ------------------------------------------------------------------------------------ writing

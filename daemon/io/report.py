@@ -24,18 +24,18 @@ figures can be drawn; callers skip them (and say so in the report) when it canno
 from __future__ import annotations
 
 import base64
-import contextlib
 import html
 import io
 import logging
 import os
 import re
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+
+from wristscan.daemon.io.atomic import write_atomic
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -255,7 +255,7 @@ class Report:
         target = Path(path)
         suffix = target.suffix.lower()
         if suffix in (".html", ".htm"):
-            _atomic_write(target, self.to_html().encode("utf-8"))
+            write_atomic(target, self.to_html().encode("utf-8"))
         elif suffix == ".md":
             image_dir = f"{target.stem}_files"
             text, files = self.to_markdown(image_dir)
@@ -263,8 +263,8 @@ class Report:
                 folder = target.parent / image_dir
                 folder.mkdir(parents=True, exist_ok=True)
                 for name, data in files.items():
-                    _atomic_write(folder / name, data)
-            _atomic_write(target, text.encode("utf-8"))
+                    write_atomic(folder / name, data)
+            write_atomic(target, text.encode("utf-8"))
         else:
             raise ValueError(f"report {target}: the name must end in .html, .htm or .md")
         log.info("wrote report %s", target)
@@ -272,20 +272,6 @@ class Report:
 
     def _stamp(self) -> str:
         return self.created_utc.strftime("%Y-%m-%d %H:%M:%S UTC")
-
-
-def _atomic_write(target: Path, data: bytes) -> None:
-    directory = target.parent if str(target.parent) else Path(".")
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=directory)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, target)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
 
 
 def axis_equal_3d(ax: Axes, points: Any) -> None:

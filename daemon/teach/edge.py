@@ -49,14 +49,11 @@ from numpy.typing import ArrayLike, NDArray
 
 from wristscan.calib import se3
 from wristscan.calib.edge import EdgeDetection, EdgeModel, EdgePath, detect_edge, smooth_path
-from wristscan.daemon.calibrate.table import (
-    Progress,
-    load_sensor_calibration,
-    no_progress,
-    require_motion,
-    write_json_atomic,
-)
+from wristscan.daemon.calibrate.table import Progress, no_progress
 from wristscan.daemon.config import Config
+from wristscan.daemon.io.atomic import write_atomic
+from wristscan.daemon.procedure.in_force import load_sensor_calibration
+from wristscan.daemon.procedure.motion import require_motion
 from wristscan.daemon.teach.plane import Mover, TeachError, guarded, record_still, teach_acquisition
 
 if TYPE_CHECKING:
@@ -661,7 +658,7 @@ class _Follower:
 
 def write_edge_path(path: str | Path, result: EdgeResult, cfg: Config | None = None) -> Path:
     """Write the learned path (JSON, atomically)."""
-    return write_json_atomic(path, json.dumps(result.to_dict(cfg)) + "\n")
+    return write_atomic(path, json.dumps(result.to_dict(cfg)) + "\n")
 
 
 @dataclass(frozen=True)

@@ -53,23 +53,16 @@ from numpy.typing import ArrayLike, NDArray
 
 from wristscan.calib import se3
 from wristscan.calib.plane import PlaneFit, fit_hyperplane, fit_plane, plane_frame
-from wristscan.daemon.calibrate.table import (
-    ProcedureAborted,
-    ProcedureError,
-    Progress,
-    load_sensor_calibration,
-    no_progress,
-    procedure_acquisition,
-    require_motion,
-    write_json_atomic,
-)
+from wristscan.daemon.calibrate.table import Progress, no_progress
 from wristscan.daemon.config import Config
-from wristscan.daemon.io.calibfile import ur_pose_text
+from wristscan.daemon.io.atomic import write_atomic
+from wristscan.daemon.io.urpose import ur_pose_text
+from wristscan.daemon.procedure.errors import ProcedureAborted, ProcedureError
+from wristscan.daemon.procedure.in_force import load_sensor_calibration, procedure_acquisition
+from wristscan.daemon.procedure.motion import guarded_motion, require_motion
 
 if TYPE_CHECKING:
     from wristscan.daemon.procedure.acquisition import Acquisition, Sweep
-    from wristscan.drivers.sim.cell import CellSpec
-    from wristscan.drivers.sim.scene import Scene
 __all__ = [
     "PlaneOptions",
     "PlaneResult",
@@ -187,15 +180,17 @@ def record_still(acq: Acquisition, dwell_s: float, settle_s: float = 0.05) -> Sw
 
 
 def guarded(acq: Acquisition, what: str) -> AbstractContextManager[None]:
-    """Stop the robot when anything goes wrong inside the block; re-raise driver errors and
-    Ctrl-C as :class:`TeachAborted`."""
-    from wristscan.daemon.procedure.acquisition import stop_on_failure
-
-    def abort(reason: str) -> TeachAborted:
-        return TeachAborted(f"{what} aborted: {reason}; the robot was stopped")
-
-    # A failed fit (ValueError) while moving aborts too; the table is not used here.
-    return stop_on_failure(acq, abort, (ValueError,), table=False)
+    """The procedures' guard for teaching: stop the robot when anything goes wrong inside the
+    block; driver errors, Ctrl-C and a failed fit (ValueError) while moving become
+    :class:`TeachAborted` (the table is not used here)."""
+    return guarded_motion(
+        acq,
+        what,
+        error=TeachAborted,
+        also=(ValueError,),
+        consequence="the robot was stopped",
+        table=False,
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -603,7 +598,7 @@ def teach_plane(
 
 def write_plane_frame(path: str | Path, result: PlaneResult) -> Path:
     """Write the frame and its statistics as JSON (atomically)."""
-    return write_json_atomic(path, json.dumps(result.to_dict(), indent=2) + "\n")
+    return write_atomic(path, json.dumps(result.to_dict(), indent=2) + "\n")
 
 
 def read_plane_frame(path: str | Path) -> dict[str, Any]:
@@ -612,37 +607,3 @@ def read_plane_frame(path: str | Path) -> dict[str, Any]:
     if not isinstance(doc, dict) or doc.get("format") != FRAME_FORMAT:
         raise ValueError(f"{path}: not a wristscan plane frame file")
     return doc
-
-
-# --------------------------------------------------------------------------------------------
-# The simulated cell for the teaching procedures (tests, benchmarks, demonstrations)
-
-
-def simulated_cell_spec(
-    cfg: Config, scene: Scene, sensor2base_start: ArrayLike, **sensor_overrides: Any
-) -> CellSpec:
-    """The simulated cell of ``cfg`` with ``scene`` (:mod:`wristscan.drivers.sim.scenes_apps`)
-    and the arm placed so that the sensor starts at ``sensor2base_start`` (a ``CellSpec``)."""
-    import dataclasses
-
-    from wristscan.daemon.simcell.cell import cell_spec
-    from wristscan.drivers.sim.scenes_apps import start_q_for_sensor
-
-    spec = cell_spec(cfg, **sensor_overrides)
-    ctl = spec.controller
-    q = start_q_for_sensor(
-        ctl.model, sensor2base_start, spec.sensor.sensor2flange_matrix(), ctl.initial_q
-    )
-    ctl = dataclasses.replace(ctl, initial_q=tuple(float(v) for v in q))
-    return dataclasses.replace(spec, controller=ctl, scene=scene)
-
-
-def write_truth_calibration(cfg: Config, spec: CellSpec) -> Path:
-    """Write the simulated cell's true sensor2flange as the calibration file of ``cfg`` (as
-    ``wristscan demo`` does), so that a procedure runs with a perfect calibration."""
-    from wristscan.daemon.simcell.cell import write_truth_calibrations
-
-    if cfg.calibration.file is None:
-        raise TeachError(f"{cfg.source}: [calibration] file is not set")
-    truth = {"sensor2flange": spec.sensor.sensor2flange_matrix()}
-    return write_truth_calibrations(cfg, truth, method="ground truth of the simulated cell")[0]

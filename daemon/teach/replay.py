@@ -50,14 +50,11 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from wristscan.calib import kinematics, se3
-from wristscan.daemon.calibrate.table import (
-    ProcedureError,
-    Progress,
-    no_progress,
-    write_json_atomic,
-)
+from wristscan.daemon.calibrate.table import Progress, no_progress
 from wristscan.daemon.config import Config
-from wristscan.daemon.io.calibfile import ur_pose_text
+from wristscan.daemon.io.atomic import write_atomic
+from wristscan.daemon.io.urpose import ur_pose_text
+from wristscan.daemon.procedure.errors import ProcedureError
 
 if TYPE_CHECKING:
     from wristscan.daemon.teach.edge import LearnedPath
@@ -466,7 +463,7 @@ def _joint_path(
 
 
 def write_waypoints(path: str | Path, plan: ReplayPlan) -> Path:
-    return write_json_atomic(path, json.dumps(plan.to_dict(), indent=1) + "\n")
+    return write_atomic(path, json.dumps(plan.to_dict(), indent=1) + "\n")
 
 
 def write_csv(path: str | Path, plan: ReplayPlan) -> Path:
@@ -485,11 +482,11 @@ def write_csv(path: str | Path, plan: ReplayPlan) -> Path:
         plan.ur_poses, plan.edge_points, plan.normals, plan.blends_m, strict=True
     ):
         w.writerow([f"{v:.7f}" for v in (*p, *e, *n)] + [f"{r:.6f}"])
-    return write_json_atomic(path, buf.getvalue())
+    return write_atomic(path, buf.getvalue())
 
 
 def write_script(path: str | Path, plan: ReplayPlan) -> Path:
-    return write_json_atomic(path, plan.script())
+    return write_atomic(path, plan.script())
 
 
 # --------------------------------------------------------------------------------------------

@@ -23,24 +23,17 @@ from wristscan.daemon.calibrate.latency import (
     calibrate_latency,
     latency_report,
     outlier_sweeps,
-    pairing_truth_tap,
-    truth_offset_s,
     write_latency_result,
 )
 from wristscan.daemon.calibrate.table import (
-    BallNotFound,
-    MotionNotConfirmed,
     TableOptions,
     TableResult,
     _predict,
     ball_from_sweep,
     calibrate_table,
     direction_cov,
-    require_motion,
-    simulated_cell_spec,
     table_calibration,
     table_report,
-    table_truth,
     tilt_sigma_deg,
 )
 from wristscan.daemon.cli.app import app
@@ -54,7 +47,16 @@ from wristscan.daemon.io.calibfile import (
     write_calibration,
 )
 from wristscan.daemon.procedure.acquisition import Sweep
-from wristscan.daemon.simcell.cell import dump_toml, free_sim_config, write_truth_calibrations
+from wristscan.daemon.procedure.errors import BallNotFound, MotionNotConfirmed
+from wristscan.daemon.procedure.motion import require_motion
+from wristscan.daemon.simcell.cell import dump_toml, free_sim_config
+from wristscan.daemon.simcell.scenarios import (
+    pairing_truth_tap,
+    table_ball_cell,
+    table_truth,
+    truth_offset_s,
+    write_truth_calibration,
+)
 from wristscan.drivers.sim.cell import SimulatedCell
 
 SIM_TOML = Path(__file__).resolve().parents[3] / "config" / "sim.toml"
@@ -375,18 +377,11 @@ def sim_config(
     return path, load_config(path)
 
 
-def write_truth_calibration(cfg: Config, spec: object) -> None:
-    s2f = spec.sensor.sensor2flange_matrix()  # type: ignore[attr-defined]
-    write_truth_calibrations(
-        cfg, {"sensor2flange": s2f}, method="ground truth of the simulated cell"
-    )
-
-
 @pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_table_procedure_on_the_simulated_cell(tmp_path: Path) -> None:
     path, cfg = sim_config(tmp_path)
-    spec = simulated_cell_spec(cfg, start_above="table_ball")
+    spec = table_ball_cell(cfg, start_above="table_ball")
     write_truth_calibration(cfg, spec)
     truth = table_truth(spec)
     with SimulatedCell(spec):
@@ -419,7 +414,7 @@ def test_latency_procedure_on_the_simulated_cell(tmp_path: Path) -> None:
     """1.5 ms simulated, not told. The truth to meet is the pairing offset the simulator really
     had (it adds its own sending delay when the host is busy), measured from its ground truth."""
     _, cfg = sim_config(tmp_path, latency_s=0.0015, configured_latency_s=0.0)
-    spec = simulated_cell_spec(cfg, start_above="ball", batch_s=2e-4)
+    spec = table_ball_cell(cfg, start_above="ball", batch_s=2e-4)
     write_truth_calibration(cfg, spec)
     with SimulatedCell(spec) as cell:
         assert cell.sensor is not None and cell.controller is not None
@@ -439,7 +434,7 @@ def test_latency_procedure_on_the_simulated_cell(tmp_path: Path) -> None:
 
 def test_protective_stop_aborts_and_keeps_the_calibration(tmp_path: Path) -> None:
     path, cfg = sim_config(tmp_path)
-    spec = simulated_cell_spec(cfg, start_above="table_ball")
+    spec = table_ball_cell(cfg, start_above="table_ball")
     write_truth_calibration(cfg, spec)
     # The calibration in force before the run.
     old = Calibration(

@@ -167,15 +167,6 @@ def test_failed_write_keeps_the_previous_file(tmp_path: Path) -> None:
     assert os.listdir(tmp_path) == ["c.ply"]
 
 
-def test_atomic_writer_removes_temp_on_error(tmp_path: Path) -> None:
-    target = tmp_path / "x.npz"
-    with pytest.raises(OSError, match="disk full"):
-        with plyio.atomic_writer(target) as f:
-            f.write(b"partial")
-            raise OSError("disk full")
-    assert os.listdir(tmp_path) == []
-
-
 def test_file_mode_follows_umask(tmp_path: Path) -> None:
     path = tmp_path / "c.ply"
     plyio.write_ply(path, np.zeros((1, 3)))

@@ -20,6 +20,7 @@ from wristscan.daemon.cli.app import app
 from wristscan.daemon.config import Config, load_config
 from wristscan.daemon.procedure.acquisition import Sweep
 from wristscan.daemon.simcell.cell import dump_toml, free_sim_config
+from wristscan.daemon.simcell.scenarios import cell_with_scene, write_truth_calibration
 from wristscan.daemon.teach.edge import (
     EdgeOptions,
     LearnedPath,
@@ -33,8 +34,6 @@ from wristscan.daemon.teach.plane import (
     measure_surface,
     plane_from_spots,
     points_in_base,
-    simulated_cell_spec,
-    write_truth_calibration,
 )
 from wristscan.daemon.teach.replay import (
     ReplayOptions,
@@ -333,7 +332,7 @@ def test_measure_and_teach_plane_on_the_simulated_cell(tmp_path: Path) -> None:
     path, cfg = _config(tmp_path)
     scene, truth = tilted_plate_scene(tilt_deg=12.0)
     start = sensor_looking_down(truth.point + np.array([-0.02, -0.01, 0.0]), 0.1)
-    spec = simulated_cell_spec(cfg, scene, start)
+    spec = cell_with_scene(cfg, scene, start)
     write_truth_calibration(cfg, spec)
     out = tmp_path / "frame.json"
     runner = CliRunner()
@@ -370,7 +369,7 @@ def test_teach_edge_and_replay_on_the_simulated_cell(tmp_path: Path) -> None:
     start = sensor_pose_at_edge(truth, phi0, 0.1) @ se3.make(
         se3.rot_x(math.radians(3)), (0.0, 0.0015, 0.003)
     )
-    spec = simulated_cell_spec(cfg, scene, start)
+    spec = cell_with_scene(cfg, scene, start)
     write_truth_calibration(cfg, spec)
     model = tmp_path / "edge.toml"
     learned = tmp_path / "path.json"

@@ -1,0 +1,209 @@
+"""Simulated cells set up for the procedures, and their ground truth: what the tests, the
+benchmarks and ``wristscan demo`` run the calibration and teaching procedures on.
+
+Production code never imports this module (it imports the simulator); the procedures take the
+cell's configuration like any other.
+
+* :func:`table_ball_cell`, :func:`table_truth`: a tooling ball on a post on the rotary table
+  (``calibrate table`` and ``calibrate latency``).
+* :func:`cell_with_scene`: a cell with a scene of ``wristscan.drivers.sim.scenes_apps`` (the
+  teaching procedures) and the arm placed over it; :func:`write_truth_calibration` writes the
+  cell's true sensor2flange as the calibration in force.
+* :func:`pairing_truth_tap`, :func:`truth_offset_s`: the pairing offset that ``calibrate
+  latency`` should find, measured from the simulator's truth.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from wristscan.calib import kinematics, se3
+from wristscan.calib.table import base2table_from
+from wristscan.daemon.calibrate.latency import LatencyResult
+from wristscan.daemon.config import Config, SimConfig
+from wristscan.daemon.procedure.acquisition import Acquisition
+from wristscan.daemon.simcell.cell import cell_spec, write_truth_calibrations
+from wristscan.drivers.sim.cell import CellSpec
+from wristscan.drivers.sim.scene import Cylinder, Scene, Sphere, demo_scene
+from wristscan.drivers.sim.scenes_apps import start_q_for_sensor
+
+__all__ = [
+    "cell_with_scene",
+    "pairing_truth_tap",
+    "table_ball_cell",
+    "table_truth",
+    "truth_offset_s",
+    "write_truth_calibration",
+]
+
+
+def table_ball_cell(
+    cfg: Config,
+    *,
+    ball_on_table_m: Sequence[float] = (0.10, 0.0),
+    ball_height_m: float = 0.06,
+    start_above: str | Sequence[float] | None = None,
+    standoff_m: float = 0.10,
+    **sensor_overrides: Any,
+) -> CellSpec:
+    """The simulated cell of ``cfg`` with a tooling ball on a post on the rotary table.
+
+    The demo scene without its part, plus a platter (0.15 m radius, 0.03 m high), a post and a
+    ball of ``[sim.scene] ball_radius_m`` at ``ball_on_table_m`` (table frame, m) with its centre
+    ``ball_height_m`` above the platter. Primitive names: ``table_ball``, ``table_post`` (and the
+    demo's ``ball`` on its post on the base).
+
+    ``start_above``: the arm starts with the sensor ``standoff_m`` above this point (a base-frame
+    point, or the name of a primitive: ``"table_ball"``, ``"ball"``), in the orientation of the
+    configured start joints, as an operator would have placed it.
+    """
+
+    spec = cell_spec(cfg, **sensor_overrides)
+    sim = cfg.sim or SimConfig()
+    radius = sim.scene.ball_radius_m
+    scene = demo_scene(
+        ball_radius_m=radius,
+        ball_centre=sim.scene.ball_centre_m,
+        table_zero2base=sim.truth.table_zero2base(),
+        with_part=False,
+    )
+    platter_h = 0.03
+    bx, by = float(ball_on_table_m[0]), float(ball_on_table_m[1])
+    scene.add(Cylinder(0.15, platter_h, mount="table", name="platter"))
+    post_h = ball_height_m - 0.8 * radius
+    scene.add(
+        Cylinder(0.004, post_h, se3.make(t=(bx, by, platter_h)), mount="table", name="table_post")
+    )
+    scene.add(Sphere(radius, (bx, by, platter_h + ball_height_m), mount="table", name="table_ball"))
+    if start_above is not None:
+        if isinstance(start_above, str):
+            target = se3.translation(scene.prim2base(scene.find(start_above), 0.0))
+        else:
+            target = np.asarray(start_above, dtype=np.float64)
+        ctl = spec.controller
+        s2f = spec.sensor.sensor2flange_matrix()
+        q0 = np.asarray(ctl.initial_q, dtype=np.float64)
+        R = (kinematics.forward(ctl.model, q0) @ s2f)[:3, :3]
+        s2b = se3.make(R, target - standoff_m * R[:, 2])
+        q = kinematics.inverse_nearest(ctl.model, s2b @ se3.invert(s2f), q0)
+        spec = dataclasses.replace(
+            spec, controller=dataclasses.replace(ctl, initial_q=tuple(float(v) for v in q))
+        )
+    return dataclasses.replace(spec, scene=scene)
+
+
+def table_truth(spec: CellSpec, angle_rad: float = 0.0) -> dict[str, Any]:
+    """Ground truth of a :func:`table_ball_cell` cell: the axis, its tilt, the ball centre at
+    ``angle_rad`` and the encoder offset in the gauge of
+    :func:`wristscan.calib.table.fit_table_axis`."""
+
+    assert spec.scene is not None
+    scene = spec.scene
+    z2b = scene.table_zero2base
+    direction = z2b[:3, 2]
+    point = z2b[:3, 3]
+    ball = scene.find("table_ball")
+    centre0 = se3.translation(scene.prim2base(ball, 0.0))
+    b2t = base2table_from(direction, point)
+    local = b2t[:3, :3] @ centre0 + b2t[:3, 3]
+    return {
+        "axis_direction": direction.tolist(),
+        "axis_point_m": point.tolist(),
+        "tilt_deg": math.degrees(math.acos(min(1.0, abs(float(direction[2]))))),
+        "ball_centre_m": se3.translation(scene.prim2base(ball, angle_rad)).tolist(),
+        "ball_centre0_m": centre0.tolist(),
+        "encoder_offset_rad": math.atan2(float(local[1]), float(local[0])),
+    }
+
+
+def cell_with_scene(
+    cfg: Config, scene: Scene, sensor2base_start: ArrayLike, **sensor_overrides: Any
+) -> CellSpec:
+    """The simulated cell of ``cfg`` with ``scene`` (:mod:`wristscan.drivers.sim.scenes_apps`)
+    and the arm placed so that the sensor starts at ``sensor2base_start`` (a ``CellSpec``)."""
+    spec = cell_spec(cfg, **sensor_overrides)
+    ctl = spec.controller
+    q = start_q_for_sensor(
+        ctl.model, sensor2base_start, spec.sensor.sensor2flange_matrix(), ctl.initial_q
+    )
+    ctl = dataclasses.replace(ctl, initial_q=tuple(float(v) for v in q))
+    return dataclasses.replace(spec, controller=ctl, scene=scene)
+
+
+def write_truth_calibration(cfg: Config, spec: CellSpec) -> Path:
+    """Write the simulated cell's true sensor2flange as the calibration file of ``cfg`` (as
+    ``wristscan demo`` does), so that a procedure runs with a perfect calibration."""
+    if cfg.calibration.file is None:
+        raise ValueError(f"{cfg.source}: [calibration] file is not set")
+    truth = {"sensor2flange": spec.sensor.sensor2flange_matrix()}
+    return write_truth_calibrations(cfg, truth, method="ground truth of the simulated cell")[0]
+
+
+def pairing_truth_tap(
+    cfg: Config, sensor_info: dict[str, Any], controller_start_ns: int
+) -> Acquisition:
+    """An :class:`~wristscan.daemon.procedure.acquisition.Acquisition` on the simulated cell that
+    also measures, from the simulator's ground truth, the time offset the pairing really has: for
+    every paired profile, the true instant of the robot pose it was given minus its true exposure
+    instant.
+
+    That is what ``[sensor] latency_s`` must absorb (exposure to stamp, the smallest transport
+    delay of the profiles, and the robot stream's own, see docs/sync.md), which the simulator's
+    nominal ``latency_s`` only equals when its sensor sends on time. ``sensor_info`` is
+    ``SimulatedSensor.info()``; ``controller_start_ns`` the host time of controller time 0.
+    Read the result with ``offset_s(acq, windows)`` (:func:`truth_offset_s`).
+    """
+
+    t0 = int(sensor_info["t0_ns"])
+    period = float(sensor_info["period_ns"])
+    base = int(sensor_info["counter_base"])
+
+    class _Tap(Acquisition):
+        def __init__(self) -> None:
+            super().__init__(cfg)
+            self.truth_rows: list[NDArray[np.int64]] = []
+
+        def _offer(self, batch: Any) -> None:
+            # In the pipeline's worker thread, the one that feeds the robot clock: the mapping
+            # read here is the one the batch was paired with.
+            clock = self.pipeline.pairer.robot_clock
+            if clock.locked:
+                c = clock.to_device(batch.exposure_ns)
+                exposure = t0 + np.rint((batch.frame_counter + base) * period).astype(np.int64)
+                offset = (controller_start_ns + c) - exposure
+                self.truth_rows.append(np.stack([batch.exposure_ns, offset], axis=1))
+            super()._offer(batch)
+
+    return _Tap()
+
+
+def truth_offset_s(acq: Acquisition, result: LatencyResult) -> float:
+    """The true pairing offset (s) that ``result`` should have found, from an acquisition of
+    :func:`pairing_truth_tap`: per sweep, the median offset of the profiles that saw the ball;
+    averaged with the weights the least-squares fit gives the sweeps (the squared centred
+    velocity), so that an offset that wanders during the run is compared like with like. NaN
+    without data."""
+    rows = getattr(acq, "truth_rows", [])
+    if not rows:
+        return float("nan")
+    data = np.concatenate(rows)
+    V = np.stack([s.ball.velocity_m_s for s in result.sweeps])
+    w = np.sum((V - V.mean(axis=0)) ** 2, axis=1)
+    taus, weights = [], []
+    for s, wi in zip(result.sweeps, w, strict=True):
+        speed = float(np.linalg.norm(s.ball.velocity_m_s))
+        half = round(1e9 * min(1.0, 0.0127 / max(speed, 1e-3)))
+        inside = np.abs(data[:, 0] - s.ball.t_mid_ns) <= half
+        if inside.any():
+            taus.append(float(np.median(data[inside, 1])) * 1e-9)
+            weights.append(float(wi))
+    if not taus or sum(weights) <= 0:
+        return float("nan")
+    return float(np.average(taus, weights=weights))
