@@ -33,7 +33,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 from _report import Figure, report
 
-from wristscan.drivers import lpf1, rf627, scip
+from wristscan.drivers import lpf1, lpf1_reader, rf627, scip
 from wristscan.drivers.records import Profile
 from wristscan.drivers.sensor_rf627 import Rf627Sensor
 
@@ -242,7 +242,7 @@ def fuzz_lpf1_fragments(n: int, rng: np.random.Generator) -> Outcome:
 
     def run_case(i: int, j: int, bad: bytes) -> Profile | None:
         frags = frames[i]
-        ra = lpf1.Reassembler()
+        ra = lpf1_reader.Reassembler()
         got = None
         order = [bad if k == j else f for k, f in enumerate(frags)]
         for part in order[::-1] if i % 2 else order:
@@ -332,14 +332,18 @@ def _stream_fuzz(
 
 def fuzz_lpf1_stream(n: int, rng: np.random.Generator) -> Outcome:
     msgs = [f for f in lpf1_frames(rng, 64)]
-    return _stream_fuzz("lpf1 tcp stream", msgs, msgs, lpf1.StreamDecoder, n, rng, LPF1_LENGTHS)
+    return _stream_fuzz(
+        "lpf1 tcp stream", msgs, msgs, lpf1_reader.StreamDecoder, n, rng, LPF1_LENGTHS
+    )
 
 
 def fuzz_lpf1_serial(n: int, rng: np.random.Generator) -> Outcome:
     msgs = [f for f in lpf1_frames(rng, 64)]
     framed = [lpf1.cobs_frame(m) for m in msgs]
     # Length damage on a COBS frame: a code byte (they say how far the next zero is).
-    return _stream_fuzz("lpf1 serial (cobs)", msgs, framed, lpf1.SerialDecoder, n, rng, [(0, 1)])
+    return _stream_fuzz(
+        "lpf1 serial (cobs)", msgs, framed, lpf1_reader.SerialDecoder, n, rng, [(0, 1)]
+    )
 
 
 RF627_LENGTHS = [(61, 2), (19, 1), (18, 1), (63, 1)]

@@ -16,12 +16,15 @@ from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
-from typing import Any, ClassVar, Generic, Self, TypeVar
+from typing import TYPE_CHECKING, Any, ClassVar, Generic, Self, TypeVar
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from wristscan.drivers.records import Profile, RobotState, TableState
+
+if TYPE_CHECKING:
+    from wristscan.calib.kinematics import DHParams
 
 __all__ = [
     "Backoff",
@@ -34,8 +37,11 @@ __all__ = [
     "DriverTimeout",
     "Health",
     "LinkState",
+    "MotionFailed",
     "MotionNotEnabled",
+    "MoveStatus",
     "ProfileSensor",
+    "ProtectiveStop",
     "RawFrameLog",
     "Robot",
     "RotaryTable",
@@ -75,6 +81,37 @@ class MotionNotEnabled(DriverError):
 
 class WorkspaceViolation(DriverError):
     """A motion command was refused because its target or speed is outside the configured limits."""
+
+
+class MoveStatus(enum.Enum):
+    """Outcome of a robot's last motion command."""
+
+    IDLE = "idle"
+    """No command issued since the control link started."""
+    MOVING = "moving"
+    DONE = "done"
+    """Reached the target (confirmed by the state stream)."""
+    STOPPED = "stopped"
+    """Decelerated by :meth:`Robot.stop` before reaching the target."""
+    PROTECTIVE_STOP = "protective_stop"
+    """Ended by a safety stop (protective, safeguard or emergency)."""
+    FAILED = "failed"
+    """Refused by the controller, program stopped, or control link lost."""
+
+
+class MotionFailed(DriverIOError):
+    """A motion command did not complete; ``status`` says how it ended."""
+
+    def __init__(self, message: str, status: MoveStatus = MoveStatus.FAILED) -> None:
+        super().__init__(message)
+        self.status = status
+
+
+class ProtectiveStop(MotionFailed):
+    """The robot is, or went, into a safety stop (protective, safeguard or emergency)."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(message, MoveStatus.PROTECTIVE_STOP)
 
 
 class LinkState(enum.Enum):
@@ -315,9 +352,36 @@ def _opt_vec(v: ArrayLike | None) -> np.ndarray | None:
 
 
 class Robot(Device[RobotState]):
-    """A robot controller: a state stream, and motion commands when motion is enabled."""
+    """A robot controller: a state stream, and motion commands when motion is enabled.
+
+    The procedures (calibration, scanning, teaching) use, besides the state stream: the motion
+    commands, :meth:`latest_state`, :meth:`tcp_offset`, :meth:`kinematic_model` and the
+    attributes declared below. A plug-in robot implements the abstract methods and sets the
+    identity attributes it knows; everything else has a working default.
+    """
 
     kind = "robot"
+
+    model: str | DHParams | None = None
+    """Nominal kinematic model, a UR model name (``"UR5e"``) or DH parameters; None if unknown."""
+    serial: str | None = None
+    """The robot's serial number, when the driver knows it."""
+    host: str | None = None
+    """Address of the controller (named in messages); None for a link without one."""
+    motion_enabled: bool
+    """Unless True, every motion command is refused with :class:`MotionNotEnabled`."""
+    max_speed_m_s: float
+    """Cap on the TCP speed of linear moves (m/s); the procedures plan within it."""
+    max_accel_m_s2: float
+    """Cap on the TCP acceleration of linear moves (m/s^2)."""
+    max_joint_speed_rad_s: float
+    """Cap on the joint speed of joint moves (rad/s)."""
+    max_joint_accel_rad_s2: float
+    """Cap on the joint acceleration of joint moves (rad/s^2)."""
+    workspace_min_m: np.ndarray | None
+    """Lower corner of the box the TCP must stay in (base frame, m); None: no box."""
+    workspace_max_m: np.ndarray | None
+    """Upper corner of that box."""
 
     def __init__(
         self,
@@ -341,6 +405,7 @@ class Robot(Device[RobotState]):
         self.workspace_max_m = (
             None if workspace_max_m is None else np.asarray(workspace_max_m, float)
         )
+        self._last_read: RobotState | None = None
 
     def check_motion(
         self, target_xyz_m: ArrayLike | None, speed: float, accel: float, joint: bool = False
@@ -367,6 +432,28 @@ class Robot(Device[RobotState]):
                     f"target {np.round(p, 4).tolist()} m outside the workspace box "
                     f"{lo.tolist()} .. {hi.tolist()} m"
                 )
+
+    def read(self, timeout: float | None = None) -> RobotState | None:
+        state = super().read(timeout)
+        if state is not None:
+            self._last_read = state
+        return state
+
+    def latest_state(self) -> RobotState | None:
+        """The newest state known, without waiting; None before the first. By default the
+        newest one :meth:`read` returned (the acquisition reads the stream all along); a driver
+        that receives in the background returns the newest received, read or not."""
+        return self._last_read
+
+    @abstractmethod
+    def tcp_offset(self) -> NDArray[np.float64]:
+        """The controller's active TCP: its UR pose ``[x, y, z, rx, ry, rz]`` in the flange
+        frame (m, rad). The procedures take the flange pose from the reported TCP pose with it."""
+
+    def kinematic_model(self) -> DHParams | None:
+        """The robot's own kinematic model (e.g. its factory calibration), or None: the
+        procedures then use the configured nominal model."""
+        return None
 
     @abstractmethod
     def move_l(

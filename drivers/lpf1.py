@@ -1,4 +1,4 @@
-"""LPF1: wristscan's own framed profile protocol (encoder and decoder).
+"""LPF1: wristscan's own framed profile protocol (one message: its format, parser and encoder).
 
 The normative specification is ``docs/lpf1.md``; this module follows it. In short: a 72-byte
 little-endian header, the payload (``x[N]`` unless uniform, ``z[N]``, ``intensity[N]`` if flagged)
@@ -10,6 +10,9 @@ Points are profile coordinates ``x`` (lateral, along the laser line) and ``z`` (
 the sensor frame's Y and Z (DESIGN.md): a :class:`~wristscan.drivers.records.Profile` gets
 ``y = x``. Decoders never return a partial or guessed profile: malformed input raises
 :class:`FrameError` (or a subclass).
+
+Reading a link (fragment reassembly, stream resynchronisation, serial frames) keeps state from
+one read to the next; it lives in :mod:`wristscan.drivers.lpf1_reader`.
 """
 
 from __future__ import annotations
@@ -18,8 +21,6 @@ import json
 import logging
 import struct
 import zlib
-from collections import OrderedDict
-from collections.abc import Iterable
 from dataclasses import dataclass
 from enum import IntEnum, IntFlag
 from functools import lru_cache
@@ -32,6 +33,7 @@ from numpy.typing import ArrayLike, NDArray
 from wristscan.drivers.records import Profile
 
 __all__ = [
+    "CRC_LEN",
     "HEADER",
     "HEADER_LEN",
     "MAGIC",
@@ -45,15 +47,11 @@ __all__ = [
     "MsgType",
     "PointFormat",
     "ProfileEncoder",
-    "Reassembler",
-    "SerialDecoder",
-    "StreamDecoder",
     "TruncatedError",
     "cobs_frame",
     "decode_profile",
     "encode_control",
     "encode_profile",
-    "iter_profiles",
     "parse_message",
 ]
 
@@ -287,172 +285,6 @@ def decode_profile(message: Message | bytes, host_time_ns: int = 0) -> Profile:
     )
 
 
-class Reassembler:
-    """Collects the fragments of a frame; yields the complete message once all arrived.
-
-    Fragments may arrive in any order; at most ``max_pending`` incomplete frames are held (the
-    oldest is dropped and counted in ``dropped_frames``). Inconsistent fragments raise
-    :class:`FrameError` and discard the frame.
-    """
-
-    def __init__(self, max_pending: int = 8) -> None:
-        self.max_pending = max_pending
-        self._pending: OrderedDict[tuple[int, int], dict[int, Message]] = OrderedDict()
-        self.dropped_frames = 0
-
-    def push(self, msg: Message) -> Message | None:
-        h = msg.header
-        if h.frag_count == 1:
-            return msg
-        key = (h.sensor_id, h.frame_counter)
-        parts = self._pending.get(key)
-        if parts is None:
-            parts = self._pending[key] = {}
-            while len(self._pending) > self.max_pending:
-                self._pending.popitem(last=False)
-                self.dropped_frames += 1
-        first = next(iter(parts.values()), None)
-        if first is not None and not _same_frame(first.header, h):
-            del self._pending[key]
-            raise FrameError("LPF1 fragments of one frame disagree")
-        parts[h.frag_index] = msg
-        if len(parts) < h.frag_count:
-            return None
-        del self._pending[key]
-        ordered = [parts[i] for i in range(h.frag_count)]
-        offset = 0
-        for m in ordered:
-            if m.header.frag_offset != offset:
-                raise FrameError("LPF1 fragment offsets are not contiguous")
-            offset += len(m.payload)
-        if not ordered[-1].header.flags & Flags.LAST_FRAGMENT:
-            raise FrameError("LPF1 last fragment lacks its flag")
-        payload = b"".join(m.payload for m in ordered)
-        merged = Header(
-            **{
-                **{k: getattr(h, k) for k in Header.__slots__},
-                "payload_len": len(payload),
-                "frag_index": 0,
-                "frag_count": 1,
-                "frag_offset": 0,
-                "flags": h.flags | Flags.LAST_FRAGMENT,
-            }
-        )
-        if len(payload) != merged.frame_payload_len():
-            raise FrameError("LPF1 reassembled payload has the wrong size")
-        return Message(merged, payload)
-
-    def clear(self) -> None:
-        self._pending.clear()
-
-
-def _same_frame(a: Header, b: Header) -> bool:
-    skip = {"payload_len", "frag_index", "frag_offset", "flags"}
-    return all(getattr(a, k) == getattr(b, k) for k in Header.__slots__ if k not in skip) and (
-        a.flags & ~Flags.LAST_FRAGMENT
-    ) == (b.flags & ~Flags.LAST_FRAGMENT)
-
-
-class StreamDecoder:
-    """Splits a byte stream (TCP) into messages, resynchronising after garbage or corruption.
-
-    A candidate starts at the magic; it is accepted when its length fields are sane and its CRC
-    matches, otherwise the reader skips past that magic and searches again. ``skipped_bytes``
-    and ``bad_messages`` count what was discarded.
-    """
-
-    def __init__(self) -> None:
-        self._buf = bytearray()
-        self.skipped_bytes = 0
-        self.bad_messages = 0
-
-    def feed(self, data: bytes | bytearray | memoryview) -> list[Message]:
-        self._buf += data
-        out: list[Message] = []
-        buf = self._buf
-        pos = 0
-        while True:
-            start = buf.find(MAGIC, pos)
-            if start < 0:
-                # Keep a tail that may hold the start of a split magic.
-                keep = max(pos, len(buf) - (len(MAGIC) - 1))
-                self.skipped_bytes += keep - pos
-                pos = keep
-                break
-            self.skipped_bytes += start - pos
-            pos = start
-            if len(buf) - pos < HEADER_LEN:
-                break
-            header_len = buf[pos + 5]
-            (payload_len,) = struct.unpack_from("<I", buf, pos + 8)
-            if buf[pos + 4] != VERSION or header_len < HEADER_LEN or payload_len > MAX_PAYLOAD:
-                self.bad_messages += 1
-                pos += 1
-                continue
-            total = header_len + payload_len + CRC_LEN
-            if len(buf) - pos < total:
-                # A corrupted length could stall the stream for megabytes: if a complete,
-                # valid message starts further on, this candidate was not one.
-                if self._valid_message_after(buf, pos + 1):
-                    self.bad_messages += 1
-                    pos += 1
-                    continue
-                break
-            try:
-                out.append(parse_message(memoryview(buf)[pos : pos + total]))
-            except FrameError:
-                self.bad_messages += 1
-                pos += 1
-                continue
-            pos += total
-        del buf[:pos]
-        return out
-
-    @staticmethod
-    def _valid_message_after(buf: bytearray, start: int) -> bool:
-        nxt = buf.find(MAGIC, start)
-        while nxt >= 0 and len(buf) - nxt >= HEADER_LEN:
-            header_len = buf[nxt + 5]
-            (payload_len,) = struct.unpack_from("<I", buf, nxt + 8)
-            total = header_len + payload_len + CRC_LEN
-            if header_len >= HEADER_LEN and len(buf) - nxt >= total:
-                try:
-                    parse_message(memoryview(buf)[nxt : nxt + total])
-                    return True
-                except FrameError:
-                    pass
-            nxt = buf.find(MAGIC, nxt + 1)
-        return False
-
-
-class SerialDecoder:
-    """Splits a serial byte stream of COBS-encoded, zero-terminated messages."""
-
-    def __init__(self, max_frame: int = MAX_PAYLOAD) -> None:
-        self._buf = bytearray()
-        self.max_frame = max_frame
-        self.bad_messages = 0
-        self.skipped_bytes = 0
-
-    def feed(self, data: bytes | bytearray | memoryview) -> list[Message]:
-        self._buf += data
-        out: list[Message] = []
-        *frames, rest = bytes(self._buf).split(b"\x00")
-        self._buf = bytearray(rest)
-        if len(self._buf) > self.max_frame:  # no delimiter for too long: line garbage
-            self.skipped_bytes += len(self._buf)
-            self._buf.clear()
-        for enc in frames:
-            if not enc:
-                continue
-            try:
-                out.append(parse_message(cobs.decode(enc)))
-            except (cobs.DecodeError, FrameError):
-                self.bad_messages += 1
-                self.skipped_bytes += len(enc) + 1
-        return out
-
-
 def cobs_frame(message: bytes) -> bytes:
     """One message framed for a serial link: COBS-encoded, then a zero delimiter."""
     return bytes(cobs.encode(message)) + b"\x00"
@@ -475,6 +307,7 @@ def _pack(
     scales: tuple[int, int, int, int] = (0, 0, 0, 0),
     frag: tuple[int, int, int] = (0, 1, 0),
 ) -> bytes:
+    """One message: header, payload, CRC-32 (the one place that lays a message out)."""
     head = HEADER.pack(
         MAGIC,
         VERSION,
@@ -492,7 +325,7 @@ def _pack(
         *frag,
     )
     crc = zlib.crc32(payload, zlib.crc32(head))
-    return b"".join((head, payload, struct.pack("<I", crc)))
+    return b"".join((head, payload, crc.to_bytes(4, "little")))
 
 
 def encode_control(
@@ -585,6 +418,56 @@ class ProfileEncoder:
         n_prof, n = z2.shape
         counters = np.broadcast_to(np.asarray(frame_counter, dtype=np.int64), (n_prof,))
         stamps = np.broadcast_to(np.asarray(timestamp_ns, dtype=np.int64), (n_prof,))
+        payloads, flags = self._payloads(z2, v2, x, intensity)
+        enc_list = [0] * n_prof
+        if encoder is not None:
+            enc_list = np.broadcast_to(np.asarray(encoder, dtype=np.int64), (n_prof,)).tolist()
+            flags |= Flags.ENCODER_VALID
+        scales = self._scales()
+        total = payloads.shape[1]
+        chunk = (
+            total
+            if self.max_message_bytes is None
+            else self.max_message_bytes - HEADER_LEN - CRC_LEN
+        )
+        # Per-profile work is plain ints and bytes: this loop runs up to 10 000 times a second.
+        count = max(1, -(-total // chunk))
+        frame_flags = [int(flags)] * (count - 1) + [int(flags | Flags.LAST_FRAGMENT)]
+        fmt = int(self.point_format)
+        counter_list, stamp_list = counters.tolist(), stamps.tolist()
+        out: list[list[bytes]] = []
+        for p in range(n_prof):
+            row = payloads[p].tobytes()
+            out.append(
+                [
+                    _pack(
+                        _PROFILE,
+                        frame_flags[i],
+                        row[i * chunk : (i + 1) * chunk] if count > 1 else row,
+                        self.sensor_id,
+                        counter_list[p],
+                        stamp_list[p],
+                        enc_list[p],
+                        n,
+                        fmt,
+                        scales,
+                        (i, count, i * chunk),
+                    )
+                    for i in range(count)
+                ]
+            )
+        return out
+
+    def _payloads(
+        self,
+        z2: NDArray[np.float64],
+        v2: NDArray[np.bool_],
+        x: ArrayLike | None,
+        intensity: ArrayLike | None,
+    ) -> tuple[NDArray[np.uint8], int]:
+        """Each profile's payload bytes (one row per profile: x when explicit, z, intensity
+        when sent), and the flags they imply."""
+        n_prof = z2.shape[0]
         zq, ok = self._quantise(z2, v2, self.z_scale_nm, self.z_offset_um)
         flags = 0
         blocks: list[NDArray[Any]] = []
@@ -605,59 +488,16 @@ class ProfileEncoder:
             blocks.append(np.broadcast_to(np.asarray(intensity, dtype=np.uint8), z2.shape))
             flags |= Flags.INTENSITY
         payloads = np.concatenate([b.view(np.uint8).reshape(n_prof, -1) for b in blocks], axis=1)
-        enc = None
-        if encoder is not None:
-            enc = np.broadcast_to(np.asarray(encoder, dtype=np.int64), (n_prof,))
-            flags |= Flags.ENCODER_VALID
-        scales = (self.x_scale_nm, self.z_scale_nm, self.x_offset_um, self.z_offset_um)
+        return payloads, int(flags)
+
+    def _scales(self) -> tuple[int, int, int, int]:
+        """The header's ``x_scale_nm, z_scale_nm, x_offset_um, z_offset_um`` (F32 sends
+        metres: only a uniform x grid keeps its scale)."""
         if self.point_format == PointFormat.F32 and not self.explicit_x:
-            scales = (self.x_scale_nm, 0, self.x_offset_um, 0)
-        elif self.point_format == PointFormat.F32:
-            scales = (0, 0, 0, 0)
-        chunk = (
-            payloads.shape[1]
-            if self.max_message_bytes is None
-            else self.max_message_bytes - HEADER_LEN - CRC_LEN
-        )
-        # Per-profile work is plain ints and bytes: this loop runs up to 10 000 times a second.
-        total = payloads.shape[1]
-        count = max(1, -(-total // chunk))
-        flag_bits = int(flags)
-        last = int(Flags.LAST_FRAGMENT)
-        fmt = int(self.point_format)
-        counter_list = counters.tolist()
-        stamp_list = stamps.tolist()
-        enc_list = [0] * n_prof if enc is None else enc.tolist()
-        pack = HEADER.pack
-        crc32 = zlib.crc32
-        out: list[list[bytes]] = []
-        for p in range(n_prof):
-            row = payloads[p].tobytes()
-            msgs = []
-            for i in range(count):
-                piece = row[i * chunk : (i + 1) * chunk] if count > 1 else row
-                head = pack(
-                    MAGIC,
-                    VERSION,
-                    HEADER_LEN,
-                    MsgType.PROFILE,
-                    flag_bits | (last if i == count - 1 else 0),
-                    len(piece),
-                    self.sensor_id,
-                    counter_list[p],
-                    stamp_list[p],
-                    enc_list[p],
-                    n,
-                    fmt,
-                    *scales,
-                    i,
-                    count,
-                    i * chunk,
-                )
-                crc = crc32(piece, crc32(head))
-                msgs.append(b"".join((head, piece, crc.to_bytes(4, "little"))))
-            out.append(msgs)
-        return out
+            return (self.x_scale_nm, 0, self.x_offset_um, 0)
+        if self.point_format == PointFormat.F32:
+            return (0, 0, 0, 0)
+        return (self.x_scale_nm, self.z_scale_nm, self.x_offset_um, self.z_offset_um)
 
 
 def encode_profile(
@@ -707,16 +547,3 @@ def encode_profile(
         intensity=None if profile.intensity is None else profile.intensity[None],
         encoder=profile.encoder,
     )[0]
-
-
-def iter_profiles(messages: Iterable[Message], reassembler: Reassembler,
-                  host_time_ns: int = 0) -> list[Profile]:  # fmt: skip
-    """Profiles completed by ``messages`` (control messages are skipped)."""
-    out = []
-    for m in messages:
-        if m.header.msg_type != MsgType.PROFILE:
-            continue
-        whole = reassembler.push(m)
-        if whole is not None:
-            out.append(decode_profile(whole, host_time_ns))
-    return out

@@ -20,6 +20,7 @@ from wristscan.drivers._sensor import SensorCore
 from wristscan.drivers._stream import Chunk, StreamProfileSensor, TcpTransport, Transport, open_url
 from wristscan.drivers._udp import UdpProfileSensor
 from wristscan.drivers.base import DriverInitError
+from wristscan.drivers.lpf1_reader import Reassembler, SerialDecoder, StreamDecoder
 
 __all__ = ["Lpf1SerialSensor", "Lpf1TcpSensor", "Lpf1UdpSensor"]
 
@@ -31,7 +32,7 @@ class _Lpf1Messages:
 
     def __init__(self, sensor: SensorCore) -> None:
         self.sensor = sensor
-        self.reassembler = lpf1.Reassembler()
+        self.reassembler = Reassembler()
         self.incomplete_frames = 0
         self.hello: dict[str, Any] | None = None
         """The latest HELLO payload (the sensor's self-description)."""
@@ -40,7 +41,7 @@ class _Lpf1Messages:
 
     def reset(self) -> None:
         self.incomplete_frames += self.reassembler.dropped_frames
-        self.reassembler = lpf1.Reassembler()
+        self.reassembler = Reassembler()
 
     def handle(self, msg: lpf1.Message, host_time_ns: int) -> None:
         s = self.sensor
@@ -133,11 +134,11 @@ class _Lpf1StreamSensor(StreamProfileSensor):
     def __init__(self, sensor_id: int | None) -> None:
         super().__init__(sensor_id)
         self.lpf1 = _Lpf1Messages(self)
-        self._decoder: lpf1.StreamDecoder | lpf1.SerialDecoder = self._new_decoder()
+        self._decoder: StreamDecoder | SerialDecoder = self._new_decoder()
         self._skipped_total = 0
 
-    def _new_decoder(self) -> lpf1.StreamDecoder | lpf1.SerialDecoder:
-        return lpf1.StreamDecoder()
+    def _new_decoder(self) -> StreamDecoder | SerialDecoder:
+        return StreamDecoder()
 
     def _reset_decoder(self) -> None:
         self._skipped_total += self._decoder.skipped_bytes
@@ -207,8 +208,8 @@ class Lpf1SerialSensor(_Lpf1StreamSensor):
         self._joining = True
         self._head = bytearray()
 
-    def _new_decoder(self) -> lpf1.StreamDecoder | lpf1.SerialDecoder:
-        return lpf1.SerialDecoder()
+    def _new_decoder(self) -> StreamDecoder | SerialDecoder:
+        return SerialDecoder()
 
     def _reset_decoder(self) -> None:
         super()._reset_decoder()

@@ -2,15 +2,21 @@
 
 The child calls its target with the child end of the pipe and answers ``("ready", endpoint)``
 once it listens (or ``("error", text)``); ``("stop",)`` ends it. ``stop`` is idempotent and
-kills a child that does not end in time, so tests never leave processes behind.
+ends a child that does not stop in time (terminate, then kill), so tests never leave processes
+behind. Starting and stopping are the UR driver's
+(:func:`~wristscan.drivers.ur.process.spawn_child`,
+:func:`~wristscan.drivers.ur.process.stop_child`): one way to run a child, real or simulated.
 """
 
 from __future__ import annotations
 
-import multiprocessing as mp
+import pickle
 from collections.abc import Callable
 from multiprocessing.connection import Connection
+from multiprocessing.process import BaseProcess
 from typing import Any, Self
+
+from wristscan.drivers.ur.process import spawn_child, stop_child
 
 __all__ = ["SimProcess"]
 
@@ -22,7 +28,7 @@ class SimProcess:
 
     def __init__(self) -> None:
         self.endpoint: dict[str, Any] = {}
-        self._proc: Any = None
+        self._proc: BaseProcess | None = None
         self._conn: Connection | None = None
 
     def _target(self) -> tuple[Callable[..., None], tuple[Any, ...]]:
@@ -30,14 +36,8 @@ class SimProcess:
         raise NotImplementedError
 
     def start(self, timeout_s: float = 30.0) -> Self:
-        ctx = mp.get_context("spawn")
-        parent, child = ctx.Pipe()
         fn, args = self._target()
-        self._proc = ctx.Process(
-            target=fn, args=(*args, child), name=self.process_name, daemon=True
-        )
-        self._proc.start()
-        child.close()
+        self._proc, parent = spawn_child(fn, args, self.process_name)
         self._conn = parent
         if not parent.poll(timeout_s):
             self.stop()
@@ -55,19 +55,11 @@ class SimProcess:
     def stop(self) -> None:
         if self._proc is None:
             return
-        try:
-            if self._conn is not None:
-                self._conn.send(("stop",))
-        except (BrokenPipeError, OSError):
-            pass
-        self._proc.join(timeout=5)
-        if self._proc.is_alive():
-            self._proc.kill()
-            self._proc.join(timeout=5)
-        if self._conn is not None:
-            self._conn.close()
+        proc, conn = self._proc, self._conn
         self._proc = None
         self._conn = None
+        # The child reads with recv(): the stop message goes as a pickle.
+        stop_child(proc, conn, pickle.dumps(("stop",)), wait_s=5.0)
 
     def __enter__(self) -> Self:
         return self.start()

@@ -10,7 +10,7 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from wristscan.drivers import lpf1, rf627, scip
+from wristscan.drivers import lpf1, lpf1_reader, rf627, scip
 from wristscan.drivers.records import Profile
 
 SETTINGS = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -109,8 +109,8 @@ def test_lpf1_stream_decoders_resynchronise_and_pass_only_intact_messages(
     bad_wire = lpf1.cobs_frame(bad) if serial else bad
     stream = wire[0] + bad_wire + wire[2]
     cut = min(cut, len(stream))
-    dec: lpf1.StreamDecoder | lpf1.SerialDecoder = (
-        lpf1.SerialDecoder() if serial else lpf1.StreamDecoder()
+    dec: lpf1_reader.StreamDecoder | lpf1_reader.SerialDecoder = (
+        lpf1_reader.SerialDecoder() if serial else lpf1_reader.StreamDecoder()
     )
     got = dec.feed(stream[:cut]) + dec.feed(stream[cut:])
     assert all(m in originals for m in got)

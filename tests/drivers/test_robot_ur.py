@@ -1,5 +1,5 @@
-"""URRobot (drivers/robot_ur.py) against the simulated UR controller, and the primary-interface
-client (drivers/ur_primary.py) against drivers/sim/primary.py.
+"""URRobot (drivers/ur/) against the simulated UR controller, and the primary-interface
+client (drivers/ur/primary.py) against drivers/sim/ur/primary.py.
 
 Every test starts its own simulated controller process on a random free 127.0.0.x address and
 stops it, and closes every driver, before it ends. The ground truth is the controller's own state
@@ -27,7 +27,10 @@ from wristscan.drivers.base import (
     DriverInitError,
     DriverTimeout,
     LinkState,
+    MotionFailed,
     MotionNotEnabled,
+    MoveStatus,
+    ProtectiveStop,
     WorkspaceViolation,
 )
 from wristscan.drivers.records import RobotState
@@ -51,7 +54,7 @@ from wristscan.drivers.ur.primary import (
     parse_kinematics_info,
     read_kinematics_info,
 )
-from wristscan.drivers.ur.robot import MotionFailed, MoveStatus, ProtectiveStop, URRobot
+from wristscan.drivers.ur.robot import URRobot
 
 pytestmark = pytest.mark.timeout(120)
 

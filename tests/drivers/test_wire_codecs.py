@@ -10,7 +10,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from wristscan.drivers import lpf1, rf627, scip
+from wristscan.drivers import lpf1, lpf1_reader, rf627, scip
 from wristscan.drivers.records import Profile
 
 FAST = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -87,7 +87,7 @@ def test_lpf1_fragments_reassemble_in_any_order() -> None:
     assert sum(bool(p.header.flags & lpf1.Flags.LAST_FRAGMENT) for p in parsed) == 1
     with pytest.raises(lpf1.FrameError):
         lpf1.decode_profile(parsed[0])  # a fragment alone is not a profile
-    re = lpf1.Reassembler()
+    re = lpf1_reader.Reassembler()
     order = np.random.default_rng(1).permutation(len(parsed))
     results = [re.push(parsed[i]) for i in order]
     assert all(r is None for r in results[:-1]) and results[-1] is not None
@@ -97,7 +97,7 @@ def test_lpf1_fragments_reassemble_in_any_order() -> None:
 
 
 def test_lpf1_reassembler_drops_incomplete_frames() -> None:
-    re = lpf1.Reassembler(max_pending=2)
+    re = lpf1_reader.Reassembler(max_pending=2)
     for counter in range(4):
         prof = _profile(2048)
         prof.frame_counter = counter
@@ -116,7 +116,7 @@ def test_lpf1_stream_decoder_resyncs_over_garbage_and_splits() -> None:
     bad[100] ^= 0x10
     stream = b"junkLPF" + msgs[0] + msgs[1][:50] + msgs[1][50:] + bytes(bad) + b"LPF1\x01" + msgs[3]
     stream += msgs[4]
-    dec = lpf1.StreamDecoder()
+    dec = lpf1_reader.StreamDecoder()
     got = []
     for i in range(0, len(stream), 37):  # arbitrary chunking
         got += dec.feed(stream[i : i + 37])
@@ -132,7 +132,7 @@ def test_lpf1_stream_decoder_does_not_wait_for_a_corrupted_length() -> None:
         msgs.append(lpf1.encode_profile(prof)[0])
     bad = bytearray(msgs[1])
     bad[10] = 0x10  # payload_len now claims ~1 MB
-    dec = lpf1.StreamDecoder()
+    dec = lpf1_reader.StreamDecoder()
     got = dec.feed(msgs[0] + bytes(bad) + msgs[2] + msgs[3])
     assert [m.header.frame_counter for m in got] == [0, 2, 3]
 
@@ -146,7 +146,7 @@ def test_lpf1_serial_cobs_framing() -> None:
     assert all(m.count(0) == 1 and m.endswith(b"\x00") for m in msgs)
     broken = bytearray(msgs[1])
     broken[20] = 0x55 if broken[20] != 0x55 else 0x56  # not a zero: the framing survives
-    dec = lpf1.SerialDecoder()
+    dec = lpf1_reader.SerialDecoder()
     # Line noise ended by a zero, frame 0 split across reads, a damaged frame, frame 2.
     got = dec.feed(b"\x13\x37\x00" + msgs[0][:10])
     got += dec.feed(msgs[0][10:] + bytes(broken) + msgs[2])
