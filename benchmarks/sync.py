@@ -27,8 +27,9 @@ from scipy.interpolate import CubicSpline
 from wristscan.calib import kinematics, se3
 from wristscan.calib.latency import estimate_latency
 from wristscan.calib.sphere import fit_sphere
+from wristscan.daemon.sync.batch import PairedBatch
 from wristscan.daemon.sync.clockmap import ClockMapper
-from wristscan.daemon.sync.pairing import PairedBatch, Pairer, PairerConfig
+from wristscan.daemon.sync.pairing import Pairer, PairerConfig
 from wristscan.drivers.records import Profile, RobotState
 
 sys.path.insert(0, str(Path(__file__).parent))

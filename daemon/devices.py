@@ -8,7 +8,7 @@ from typing import Any
 
 from wristscan.calib import kinematics
 from wristscan.daemon.config import Config, PluginSensorConfig
-from wristscan.daemon.sync.clockmap import ClockConfig
+from wristscan.daemon.sync.clockconfig import ClockConfig
 from wristscan.daemon.sync.pairing import PairerConfig
 from wristscan.drivers import registry
 from wristscan.drivers.base import Device, DriverError

@@ -7,6 +7,8 @@ from typing import Annotated
 
 import typer
 
+from wristscan.daemon.cli._common import EXIT_USAGE, fail
+
 
 def check_config(
     file: Annotated[
@@ -20,8 +22,7 @@ def check_config(
     from wristscan.daemon.config import ConfigError, load_config, load_default
 
     if (file is None) == (not default):
-        typer.echo("error: give a config FILE or --default (one of the two)", err=True)
-        raise typer.Exit(2)
+        fail("give a config FILE or --default (one of the two)", EXIT_USAGE)
     try:
         config = load_default() if file is None else load_config(file)
     except ConfigError as exc:
@@ -29,7 +30,7 @@ def check_config(
             typer.echo(line, err=True)
         n = len(exc.problems)
         typer.echo(f"{exc.source}: {n} problem{'s' if n != 1 else ''}, not usable", err=True)
-        raise typer.Exit(2) from None
+        raise typer.Exit(EXIT_USAGE) from None
     typer.echo(f"{config.source}: OK (schema_version {config.schema_version})")
     for line in config.summary():
         typer.echo(f"  {line}")

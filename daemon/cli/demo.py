@@ -6,6 +6,8 @@ from pathlib import Path
 
 import typer
 
+from wristscan.daemon.cli._common import EXIT_FAILED, EXIT_USAGE, fail
+
 
 def register(app: typer.Typer) -> None:
     @app.command("demo")
@@ -21,17 +23,14 @@ def register(app: typer.Typer) -> None:
         from wristscan.daemon.simcell.demo import run_demo
 
         if out.suffix.lower() != ".ply":
-            typer.echo(f"error: --out must name a .ply file, not {out}", err=True)
-            raise typer.Exit(2)
+            fail(f"--out must name a .ply file, not {out}", EXIT_USAGE)
         if not out.parent.exists():
-            typer.echo(f"error: folder {out.parent} does not exist", err=True)
-            raise typer.Exit(2)
+            fail(f"folder {out.parent} does not exist", EXIT_USAGE)
         t0 = time.monotonic()
         try:
             res = run_demo(out, voxel_m=voxel_mm * 1e-3, progress=lambda m: typer.echo(f"- {m}"))
         except RuntimeError as exc:
-            typer.echo(f"error: {exc}", err=True)
-            raise typer.Exit(1) from None
+            fail(str(exc), EXIT_FAILED)
         st = res.stats
         typer.echo("")
         typer.echo(f"wrote {res.out} ({res.points_written} points, {voxel_mm:g} mm voxels)")

@@ -9,6 +9,7 @@ when the recording is stopped with Ctrl-C or SIGTERM.
 from __future__ import annotations
 
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,17 +17,16 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from wristscan.daemon.cli.status import (
+from wristscan.daemon.cli._common import EXIT_USAGE, fail, progress_bar, stop_on_signals, table
+from wristscan.daemon.cli._remote import (
     ConfigOpt,
     ConnectOpt,
     ModeOpt,
     PrefixOpt,
     TimeoutOpt,
-    fail,
+    no_answer,
     open_client,
     resolve_target,
-    stop_on_signals,
-    table,
     wait_alive,
 )
 
@@ -34,6 +34,7 @@ if TYPE_CHECKING:
     import numpy as np
     from numpy.typing import NDArray
 
+    from wristscan.daemon.cloud.client import CloudClient
     from wristscan.daemon.cloud.wsc1 import Cloud
     from wristscan.daemon.io.ply import PlyStreamWriter
 SUFFIXES = (".ply", ".npz")
@@ -182,13 +183,13 @@ class _NpzSink:
 
 def _check_out(out: Path, ascii: bool) -> None:
     if out.suffix.lower() not in SUFFIXES:
-        raise fail(f"--out must end in .ply or .npz, got {str(out)!r}", 2)
+        fail(f"--out must end in .ply or .npz, got {str(out)!r}", EXIT_USAGE)
     if ascii and out.suffix.lower() != ".ply":
-        raise fail("--ascii applies to .ply output only", 2)
+        fail("--ascii applies to .ply output only", EXIT_USAGE)
     if out.is_dir():
-        raise fail(f"--out {str(out)!r} is a folder", 2)
+        fail(f"--out {str(out)!r} is a folder", EXIT_USAGE)
     if not out.parent.is_dir():
-        raise fail(f"the folder of --out does not exist: {str(out.parent)!r}", 2)
+        fail(f"the folder of --out does not exist: {str(out.parent)!r}", EXIT_USAGE)
 
 
 def record(
@@ -223,20 +224,13 @@ def record(
     """Record the daemon's point clouds to a file until --duration, --points or Ctrl-C."""
     _check_out(out, ascii)
     if duration is not None and duration <= 0:
-        raise fail("--duration must be > 0 seconds", 2)
+        fail("--duration must be > 0 seconds", EXIT_USAGE)
     target = resolve_target(config, prefix, connect, mode)
-    from tqdm import tqdm
-
     with stop_on_signals() as stop:
         client = open_client(target, capacity=RING_CAPACITY)
         try:
             if not wait_alive(client, timeout, stop):
-                if stop.is_set():
-                    raise typer.Exit(130)
-                raise fail(
-                    f"no wristscan daemon answered on {target.describe()} within {timeout:g} s",
-                    1,
-                )
+                no_answer(target, timeout, stop)
             typer.echo(f"recording {target.prefix}/cloud to {out} (Ctrl-C to stop)", err=True)
             sink: _PlySink | _NpzSink = (
                 _PlySink(out, ascii, target.prefix)
@@ -244,40 +238,17 @@ def record(
                 else _NpzSink(out)
             )
             tally = _Tally()
-            bar = tqdm(
+            bar = progress_bar(
                 total=points,
+                enabled=sys.stderr.isatty() if progress is None else progress,
                 unit="pt",
                 unit_scale=True,
-                file=sys.stderr,
-                disable=not (sys.stderr.isatty() if progress is None else progress),
                 mininterval=0.25,
                 dynamic_ncols=True,
             )
             t0 = time.monotonic()
-            reason = "signal"
             try:
-                while not stop.is_set():
-                    wait = 0.1
-                    if duration is not None:
-                        left = duration - (time.monotonic() - t0)
-                        if left <= 0:
-                            reason = "duration reached"
-                            break
-                        wait = min(wait, left)
-                    cloud = client.recv(timeout=wait)
-                    if cloud is None:
-                        continue
-                    tally.count(cloud)
-                    take = cloud.n_points
-                    if points is not None:
-                        take = min(take, points - tally.points)
-                    sink.add(cloud, take)
-                    tally.points += take
-                    bar.set_postfix(batches=tally.batches, lost=tally.lost, refresh=False)
-                    bar.update(take)
-                    if points is not None and tally.points >= points:
-                        reason = "point limit reached"
-                        break
+                reason = _receive(client, sink, tally, bar, stop, t0, duration, points)
                 elapsed = time.monotonic() - t0
                 bar.close()
                 path = sink.close(tally)
@@ -288,6 +259,40 @@ def record(
         finally:
             client.close()
     _summary(path, tally, client.dropped, client.malformed, elapsed, reason, sink)
+
+
+def _receive(
+    client: CloudClient,
+    sink: _PlySink | _NpzSink,
+    tally: _Tally,
+    bar: Any,
+    stop: threading.Event,
+    t0: float,
+    duration: float | None,
+    points: int | None,
+) -> str:
+    """Write the clouds received into ``sink`` until a limit or a signal; what ended it."""
+    while not stop.is_set():
+        wait = 0.1
+        if duration is not None:
+            left = duration - (time.monotonic() - t0)
+            if left <= 0:
+                return "duration reached"
+            wait = min(wait, left)
+        cloud = client.recv(timeout=wait)
+        if cloud is None:
+            continue
+        tally.count(cloud)
+        take = cloud.n_points
+        if points is not None:
+            take = min(take, points - tally.points)
+        sink.add(cloud, take)
+        tally.points += take
+        bar.set_postfix(batches=tally.batches, lost=tally.lost, refresh=False)
+        bar.update(take)
+        if points is not None and tally.points >= points:
+            return "point limit reached"
+    return "signal"
 
 
 def _summary(

@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import typer
+
+from wristscan.daemon.cli._common import CellConfigOpt
 
 
 def register(app: typer.Typer) -> None:
     @app.command("run")
     def run(
-        config: Path = typer.Option(..., "--config", "-c", help="Cell configuration (TOML)."),
+        config: CellConfigOpt,
         uncalibrated: bool = typer.Option(
             False,
             "--uncalibrated",

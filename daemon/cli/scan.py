@@ -19,7 +19,15 @@ from pathlib import Path
 
 import typer
 
-from wristscan.daemon.cli.calibrate import EXIT_FAILED, EXIT_OK, EXIT_USAGE, confirm_motion, fail
+from wristscan.daemon.cli._common import (
+    EXIT_FAILED,
+    EXIT_OK,
+    EXIT_USAGE,
+    YesOpt,
+    confirm_motion,
+    fail,
+    load_config_or_exit,
+)
 
 scan_app = typer.Typer(
     name="scan",
@@ -39,9 +47,7 @@ def scan(
     ctx: typer.Context,
     plan: Path | None = typer.Option(None, "--plan", "-p", help="Scan plan (TOML or JSON)."),
     config: Path | None = typer.Option(None, "--config", "-c", help="Configuration of the cell."),
-    yes: bool = typer.Option(
-        False, "--yes", "-y", help="Confirm that the robot may move (needed without a terminal)."
-    ),
+    yes: YesOpt = False,
     dry_run: bool = typer.Option(
         False, "--dry-run", help="Show the plan and run every check; nothing moves."
     ),
@@ -70,7 +76,6 @@ def scan(
         return
     if plan is None or config is None:
         fail("give --plan FILE and --config FILE (or: wristscan scan plan --help)", EXIT_USAGE)
-    from wristscan.daemon.cli.calibrate import load_config_or_exit
     from wristscan.daemon.scan.plan import PlanError, load_plan
 
     try:

@@ -3,30 +3,23 @@
 from __future__ import annotations
 
 import json
-import signal
-import threading
 from pathlib import Path
-from typing import Any
 
 import typer
+
+from wristscan.daemon.cli._common import (
+    EXIT_FAILED,
+    fail,
+    load_config_or_exit,
+    stop_on_signals,
+)
 
 
 def _wait_for_stop(duration_s: float | None) -> str:
     """Block until SIGINT/SIGTERM or the duration; returns what ended the wait."""
-    stop = threading.Event()
-    why = {"reason": "duration"}
-
-    def on_signal(signum: int, _frame: Any) -> None:
-        why["reason"] = signal.Signals(signum).name
-        stop.set()
-
-    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
+    with stop_on_signals() as stop:
         stop.wait(duration_s)
-    finally:
-        for s, h in old.items():
-            signal.signal(s, h)
-    return why["reason"]
+    return stop.signal_name or "duration"
 
 
 def register(app: typer.Typer) -> None:
@@ -44,19 +37,13 @@ def register(app: typer.Typer) -> None:
         as_json: bool = typer.Option(False, "--json", help="Print endpoints and truth as JSON."),
     ) -> None:
         """Start the simulated cell (UR controller, sensor, rotary table) on loopback."""
-        from wristscan.daemon.config import ConfigError, load_config, load_default
         from wristscan.daemon.simcell.cell import start_cell
 
-        try:
-            cfg = load_config(config) if config is not None else load_default()
-        except ConfigError as exc:
-            typer.echo(str(exc), err=True)
-            raise typer.Exit(2) from None
+        cfg = load_config_or_exit(config)
         try:
             cell = start_cell(cfg)
         except (RuntimeError, OSError) as exc:
-            typer.echo(f"error: the simulated cell did not start: {exc}", err=True)
-            raise typer.Exit(1) from None
+            fail(f"the simulated cell did not start: {exc}", EXIT_FAILED)
         try:
             info = {"endpoints": cell.endpoints(), "truth": cell.truth()}
             if as_json:

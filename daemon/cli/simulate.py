@@ -11,20 +11,17 @@ from __future__ import annotations
 import math
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, NoReturn
+from typing import TYPE_CHECKING, Annotated
 
 import typer
+
+from wristscan.daemon.cli._common import EXIT_FAILED, EXIT_USAGE, fail, progress_bar
 
 if TYPE_CHECKING:
     from wristscan.calib.montecarlo import StudyRow
 _MAX_ALPHAS = 10_000
 _MAX_TRIALS = 10_000_000
 _MAX_POSES = 1000
-
-
-def _fail(message: str, code: int = 2) -> NoReturn:
-    typer.echo(f"error: {message}", err=True)
-    raise typer.Exit(code)
 
 
 def parse_alphas(text: str) -> list[float]:
@@ -138,49 +135,42 @@ def tcp(
     try:
         alphas = parse_alphas(alpha)
     except ValueError as exc:
-        _fail(str(exc))
+        fail(str(exc), EXIT_USAGE)
     if not 2 <= trials <= _MAX_TRIALS:
-        _fail(f"--trials must be in [2, {_MAX_TRIALS}], got {trials}")
+        fail(f"--trials must be in [2, {_MAX_TRIALS}], got {trials}", EXIT_USAGE)
     if not (math.isfinite(sigma) and sigma > 0):
-        _fail(f"--sigma must be a positive number of millimetres, got {sigma}")
+        fail(f"--sigma must be a positive number of millimetres, got {sigma}", EXIT_USAGE)
     if poses != 0 and not 3 <= poses <= _MAX_POSES:
-        _fail(f"--poses must be 0 (none) or in [3, {_MAX_POSES}], got {poses}")
+        fail(f"--poses must be 0 (none) or in [3, {_MAX_POSES}], got {poses}", EXIT_USAGE)
     if seed < 0:
-        _fail(f"--seed must be >= 0, got {seed}")
+        fail(f"--seed must be >= 0, got {seed}", EXIT_USAGE)
     if plot is not None:
         try:
             import matplotlib  # noqa: F401
         except ImportError:
-            _fail("--plot needs matplotlib; install the extra: pip install 'wristscan[plot]'", 1)
+            fail(
+                "--plot needs matplotlib; install the extra: pip install 'wristscan[plot]'",
+                EXIT_FAILED,
+            )
         if plot.suffix.lower() != ".png" or plot.is_dir():
-            _fail(f"--plot takes a .png file name, got {str(plot)!r}")
+            fail(f"--plot takes a .png file name, got {str(plot)!r}", EXIT_USAGE)
         if not plot.parent.is_dir():
-            _fail(f"--plot: directory {str(plot.parent)!r} does not exist")
+            fail(f"--plot: directory {str(plot.parent)!r} does not exist", EXIT_USAGE)
 
     import json
-
-    from tqdm import tqdm
-
-    class _Progress(tqdm):
-        # tqdm's monitor thread starts even for a disabled bar and outlives the command.
-        monitor_interval = 0
 
     from wristscan.calib import montecarlo
 
     sigma_m = sigma * 1e-3
     rows: list[StudyRow] = []
-    progress = _Progress(
-        alphas,
-        desc="alpha",
-        unit="angle",
-        file=sys.stderr,
-        disable=json_out or not sys.stderr.isatty(),
+    progress = progress_bar(
+        alphas, enabled=not json_out and sys.stderr.isatty(), desc="alpha", unit="angle"
     )
     try:
         for a in progress:  # one angle at a time for the progress bar; rows do not depend on it
             rows.extend(montecarlo.study([a], trials, sigma_m, poses or None, seed))
     except ValueError as exc:  # includes DegeneratePoses
-        _fail(str(exc))
+        fail(str(exc), EXIT_USAGE)
     finally:
         progress.close()
 
@@ -192,7 +182,7 @@ def tcp(
         try:
             _plot(rows, plot, sigma, trials)
         except OSError as exc:
-            _fail(f"--plot: cannot write {str(plot)!r}: {exc.strerror or exc}")
+            fail(f"--plot: cannot write {str(plot)!r}: {exc.strerror or exc}", EXIT_USAGE)
         if not json_out:
             typer.echo(f"plot written to {plot}")
 

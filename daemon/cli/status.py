@@ -1,199 +1,32 @@
-"""``wristscan status``: the daemon's status, counters and liveliness over zenoh.
-
-Also home of what ``status`` and ``record`` share: where the daemon is (prefix, endpoints, mode,
-from a config file, the command line or the embedded default), waiting for its liveliness token,
-and stopping cleanly on SIGINT/SIGTERM.
-"""
+"""``wristscan status``: the daemon's status, counters and liveliness over zenoh."""
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
-import re
-import signal
 import sys
 import threading
 import time
-from collections.abc import Iterator, Mapping
-from dataclasses import dataclass
-from pathlib import Path
-from types import FrameType
-from typing import TYPE_CHECKING, Annotated, Any, Literal
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
+from wristscan.daemon.cli._common import EXIT_FAILED, fail, stop_on_signals, table
+from wristscan.daemon.cli._remote import (
+    ConfigOpt,
+    ConnectOpt,
+    ModeOpt,
+    PrefixOpt,
+    TimeoutOpt,
+    no_answer,
+    open_client,
+    resolve_target,
+    wait_alive,
+)
+
 if TYPE_CHECKING:
     from wristscan.daemon.cloud.client import CloudClient
-# ------------------------------------------------------------------------------ shared options
-
-ConfigOpt = Annotated[
-    Path | None,
-    typer.Option(
-        "--config",
-        "-c",
-        help="Daemon config file: prefix and endpoints come from its \\[zenoh] section.",
-        show_default=False,
-    ),
-]
-PrefixOpt = Annotated[
-    str | None,
-    typer.Option(
-        "--prefix",
-        help="zenoh key prefix of the daemon (default: from the config, else wristscan/sim).",
-        show_default=False,
-    ),
-]
-ConnectOpt = Annotated[
-    list[str] | None,
-    typer.Option(
-        "--connect",
-        "-e",
-        help="zenoh endpoint to reach the daemon, e.g. tcp/127.0.0.1:7447 (repeatable; "
-        "default: the config's endpoints).",
-        show_default=False,
-    ),
-]
-ModeOpt = Annotated[
-    str | None,
-    typer.Option(
-        "--mode", help="zenoh mode: peer, or client (through a router).", show_default=False
-    ),
-]
-TimeoutOpt = Annotated[
-    float,
-    typer.Option("--timeout", min=0.1, help="Seconds to wait for the daemon to answer."),
-]
-
-_ANY_ADDRESS = re.compile(r"^(?P<proto>[a-z-]+)/(?P<host>0\.0\.0\.0|\[::\])(?P<rest>:.*)$")
-
-
-@dataclass(frozen=True)
-class Target:
-    """Where a daemon is reached: its key prefix and how to open a zenoh session towards it."""
-
-    prefix: str
-    connect: tuple[str, ...]
-    mode: Literal["peer", "client"]
-
-    def describe(self) -> str:
-        eps = ", ".join(self.connect) if self.connect else "no endpoints"
-        return f"{self.prefix} ({self.mode}, {eps})"
-
-
-def fail(message: str, code: int) -> typer.Exit:
-    """Print a one-line error on stderr; ``raise fail(...)`` ends the command with ``code``."""
-    typer.echo(f"error: {message}", err=True)
-    return typer.Exit(code)
-
-
-def _reachable(endpoint: str) -> str:
-    """A daemon listening on every interface is reached on the loopback one from its host."""
-    m = _ANY_ADDRESS.match(endpoint)
-    if m is None:
-        return endpoint
-    host = "127.0.0.1" if m["host"] == "0.0.0.0" else "[::1]"
-    return f"{m['proto']}/{host}{m['rest']}"
-
-
-def _mode(value: str) -> Literal["peer", "client"]:
-    if value == "peer":
-        return "peer"
-    if value == "client":
-        return "client"
-    raise fail(f"--mode must be 'peer' or 'client', got {value!r}", 2)
-
-
-def _check_prefix(prefix: str) -> str:
-    key = prefix.rstrip("/")
-    if not key or any(c in key for c in "*$?# ") or "//" in key or key.startswith("/"):
-        raise fail(f"--prefix must be a plain zenoh key such as wristscan/sim, got {prefix!r}", 2)
-    return key
-
-
-def resolve_target(
-    config: Path | None, prefix: str | None, connect: list[str] | None, mode: str | None
-) -> Target:
-    """The daemon to talk to. A config file (or, without one, the embedded default config of the
-    simulated cell) gives the prefix and endpoints; ``--prefix``, ``--connect``, ``--mode``
-    override them. In peer mode we connect to the endpoints the daemon listens on."""
-    if config is None and prefix is not None and connect:
-        # Everything given: skip the config module (its import alone takes a second or more).
-        return Target(_check_prefix(prefix), tuple(connect), _mode(mode or "peer"))
-
-    from wristscan.daemon.config import ConfigError, load_config, load_default
-
-    try:
-        cfg = load_default() if config is None else load_config(config)
-    except ConfigError as exc:
-        for line in exc.problems:
-            typer.echo(line, err=True)
-        raise fail(f"{exc.source}: not usable", 2) from None
-    z = cfg.zenoh
-    chosen = _mode(mode if mode is not None else z.mode)
-    if connect:
-        endpoints = tuple(connect)
-    else:
-        listen = [_reachable(ep) for ep in z.listen] if z.mode == "peer" else []
-        endpoints = tuple(dict.fromkeys([*z.connect, *listen]))
-    if chosen == "client" and not endpoints:
-        raise fail("client mode needs a router endpoint: give --connect", 2)
-    return Target(_check_prefix(prefix if prefix is not None else z.prefix), endpoints, chosen)
-
-
-def open_client(target: Target, capacity: int, subscribe: bool = True) -> CloudClient:
-    """A :class:`CloudClient` towards ``target``; a bad endpoint is a user error (exit 2)."""
-    import zenoh
-
-    from wristscan.daemon.cloud.client import CloudClient
-
-    try:
-        return CloudClient(
-            target.prefix,
-            connect=list(target.connect),
-            mode=target.mode,
-            capacity=capacity,
-            subscribe=subscribe,
-        )
-    except zenoh.ZError as exc:
-        raise fail(f"cannot open a zenoh session ({target.describe()}): {exc}", 2) from None
-
-
-@contextlib.contextmanager
-def stop_on_signals() -> Iterator[threading.Event]:
-    """An event set by SIGINT or SIGTERM while the block runs, so that a command can finish its
-    work (close files) instead of dying mid-write. Previous handlers are restored after."""
-    stop = threading.Event()
-
-    def handler(signum: int, frame: FrameType | None) -> None:
-        stop.set()
-
-    previous: dict[signal.Signals, Any] = {}
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            # A SIGINT ignored on purpose (a background job of a shell, nohup) stays ignored.
-            if sig == signal.SIGINT and signal.getsignal(sig) == signal.SIG_IGN:
-                continue
-            previous[sig] = signal.signal(sig, handler)
-    try:
-        yield stop
-    finally:
-        for sig, old in previous.items():
-            signal.signal(sig, old)
-
-
-def wait_alive(client: CloudClient, timeout: float, stop: threading.Event) -> bool:
-    """Wait up to ``timeout`` s for the daemon's liveliness token (the session may still be
-    connecting: a query then returns at once with nothing, hence the retries)."""
-    deadline = time.monotonic() + timeout
-    while not stop.is_set():
-        remaining = deadline - time.monotonic()
-        if client.alive(timeout=max(0.05, min(0.5, remaining))):
-            return True
-        if remaining <= 0:
-            return False
-        stop.wait(min(0.1, max(remaining, 0.0)))
-    return False
 
 
 # ------------------------------------------------------------------------------ formatting
@@ -221,12 +54,6 @@ def flatten(data: Mapping[str, Any], parent: str = "") -> list[tuple[str, str]]:
         else:
             rows.append((name, _value_text(value)))
     return rows
-
-
-def table(rows: list[tuple[str, str]], indent: str = "  ") -> list[str]:
-    """Aligned ``key  value`` lines."""
-    width = max((len(k) for k, _ in rows), default=0)
-    return [f"{indent}{k.ljust(width)}  {v}" for k, v in rows]
 
 
 def _count(value: Any) -> int | None:
@@ -390,21 +217,17 @@ def status(
         listener = None
         try:
             listener = _StatusListener(client)
-            if not wait_alive(client, timeout, stop):
-                if stop.is_set():
-                    raise typer.Exit(130)
-                # Liveliness may be blocked by an access policy while the topics still flow.
-                if listener.wait_new(0, 0.5, stop) == 0:
-                    raise fail(
-                        f"no wristscan daemon answered on {target.describe()} within {timeout:g} s",
-                        1,
-                    )
+            # Liveliness may be blocked by an access policy while the topics still flow.
+            if not wait_alive(client, timeout, stop) and (
+                stop.is_set() or listener.wait_new(0, 0.5, stop) == 0
+            ):
+                no_answer(target, timeout, stop)
             seen = listener.wait_new(0, timeout, stop)
             clear = watch and not as_json and sys.stdout.isatty()
             while True:
                 snap = _snapshot(client, listener, timeout)
                 if not watch and not _answered(snap):
-                    raise fail(f"the daemon on {target.describe()} stopped answering", 1)
+                    fail(f"the daemon on {target.describe()} stopped answering", EXIT_FAILED)
                 if as_json:
                     typer.echo(json.dumps(snap))
                 else:

@@ -17,20 +17,27 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from wristscan.daemon.cli.calibrate import (
+from wristscan.daemon.cli._common import (
     EXIT_FAILED,
     EXIT_USAGE,
+    CellConfigOpt,
+    YesOpt,
     confirm_motion,
     fail,
     load_config_or_exit,
+    mm,
+    progress_printer,
 )
 
 if TYPE_CHECKING:
     from wristscan.calib.edge import EdgeModel
+    from wristscan.daemon.config import Config
+    from wristscan.daemon.teach.edge import LearnedPath
+    from wristscan.daemon.teach.replay import ReplayOptions, ReplayPlan, ToolDef
 __all__ = ["register", "teach_app"]
 
 teach_app = typer.Typer(
@@ -47,12 +54,7 @@ def register(app: typer.Typer) -> None:
     app.command("measure")(measure_cmd)
 
 
-def _progress(done: int, total: int, text: str) -> None:
-    typer.echo(f"[{done}/{total}] {text}", err=True)
-
-
-def _mm(value: float) -> float:
-    return value * 1e-3
+_progress = progress_printer()
 
 
 # --------------------------------------------------------------------------------------------
@@ -61,10 +63,8 @@ def _mm(value: float) -> float:
 
 @teach_app.command("plane")
 def plane_cmd(
-    config: Path = typer.Option(..., "--config", "-c", help="Cell configuration (TOML)."),
-    yes: bool = typer.Option(
-        False, "--yes", "-y", help="Confirm that the robot may move (needed without a terminal)."
-    ),
+    config: CellConfigOpt,
+    yes: YesOpt = False,
     spacing_mm: float = typer.Option(30.0, "--spacing-mm", help="Distance between the spots."),
     spots: int = typer.Option(3, "--spots", help="3 (triangle) or 4 (square)."),
     dwell_s: float = typer.Option(0.25, "--dwell-s", help="Recording time at each spot."),
@@ -82,11 +82,11 @@ def plane_cmd(
 
     try:
         options = PlaneOptions(
-            spacing_m=_mm(spacing_mm),
+            spacing_m=mm(spacing_mm),
             n_spots=spots,
             dwell_s=dwell_s,
-            speed_m_s=_mm(speed_mm_s),
-            max_form_error_m=_mm(flatness_mm),
+            speed_m_s=mm(speed_mm_s),
+            max_form_error_m=mm(flatness_mm),
         )
     except ValueError as exc:
         fail(str(exc), EXIT_USAGE)
@@ -115,7 +115,7 @@ def plane_cmd(
 
 
 def measure_cmd(
-    config: Path = typer.Option(..., "--config", "-c", help="Cell configuration (TOML)."),
+    config: CellConfigOpt,
     dwell_s: float = typer.Option(0.2, "--dwell-s", help="Recording time (still)."),
     sweep_mm: float = typer.Option(
         0.0,
@@ -142,12 +142,12 @@ def measure_cmd(
     if sweep_mm > 0:
         confirm_motion(cfg, yes, "the measurement sweep")
     try:
-        m = measure(cfg, dwell_s=dwell_s, sweep_m=_mm(sweep_mm), confirmed=True)
+        m = measure(cfg, dwell_s=dwell_s, sweep_m=mm(sweep_mm), confirmed=True)
     except MotionNotConfirmed as exc:
         fail(str(exc), EXIT_USAGE)
     except ProcedureError as exc:
         fail(str(exc), EXIT_FAILED)
-    view = m.normal_view(None if standoff_mm is None else _mm(standoff_mm))
+    view = m.normal_view(None if standoff_mm is None else mm(standoff_mm))
     if as_json:
         doc = m.to_dict()
         doc["normal_view_sensor2base"] = view.tolist()
@@ -169,7 +169,7 @@ def measure_cmd(
         f"{m.rms_m * 1e6:.1f} um"
     )
     typer.echo(f"sensor pose   {ur_pose_text(se3.matrix_to_pose(m.sensor2base))} (base)")
-    d = m.standoff_m if standoff_mm is None else _mm(standoff_mm)
+    d = m.standoff_m if standoff_mm is None else mm(standoff_mm)
     typer.echo(
         f"normal view   {ur_pose_text(se3.matrix_to_pose(view))} "
         f"(sensor pose looking along the normal from {d * 1e3:.1f} mm)"
@@ -207,7 +207,7 @@ def load_edge_model(path: Path) -> EdgeModel:
 
 @teach_app.command("edge-model")
 def edge_model_cmd(
-    config: Path = typer.Option(..., "--config", "-c", help="Cell configuration (TOML)."),
+    config: CellConfigOpt,
     kind: str = typer.Option(
         ..., "--kind", "-k", help="step, lap_joint, v_groove or outer_corner."
     ),
@@ -234,13 +234,11 @@ def edge_model_cmd(
 
 @teach_app.command("edge")
 def edge_cmd(
-    config: Path = typer.Option(..., "--config", "-c", help="Cell configuration (TOML)."),
+    config: CellConfigOpt,
     edge_model: Path = typer.Option(
         ..., "--edge-model", "-m", help="Edge model (TOML [edge] table or JSON)."
     ),
-    yes: bool = typer.Option(
-        False, "--yes", "-y", help="Confirm that the robot may move (needed without a terminal)."
-    ),
+    yes: YesOpt = False,
     resolution_mm: float = typer.Option(1.0, "--resolution-mm", help="Spacing of the path."),
     length_mm: float = typer.Option(200.0, "--length-mm", help="Stop after this much edge."),
     step_mm: float = typer.Option(2.0, "--step-mm", help="Guidance step along the edge."),
@@ -263,12 +261,12 @@ def edge_cmd(
         fail("--direction must be 1 or -1", EXIT_USAGE)
     try:
         options = EdgeOptions(
-            resolution_m=_mm(resolution_mm),
-            length_m=_mm(length_mm),
-            step_m=_mm(step_mm),
-            standoff_m=None if standoff_mm is None else _mm(standoff_mm),
+            resolution_m=mm(resolution_mm),
+            length_m=mm(length_mm),
+            step_m=mm(step_mm),
+            standoff_m=None if standoff_mm is None else mm(standoff_mm),
             direction=direction,
-            speed_m_s=_mm(speed_mm_s),
+            speed_m_s=mm(speed_mm_s),
         )
     except ValueError as exc:
         fail(str(exc), EXIT_USAGE)
@@ -291,43 +289,62 @@ def edge_cmd(
 # teach replay
 
 
-@teach_app.command("replay")
-def replay_cmd(
-    path: Path = typer.Option(..., "--path", "-p", help="Learned path (JSON of teach edge)."),
-    tool: str = typer.Option(
-        ...,
+_ToolOpt = Annotated[
+    str,
+    typer.Option(
         "--tool",
         "-t",
         help='Tool transformation as a UR pose "p[x, y, z, rx, ry, rz]" (m, rad, flange frame)'
         " or the name of a tool in --tools.",
     ),
-    tools: Path | None = typer.Option(
-        None, "--tools", help="Tool table (TOML [tools.<name>] with tcp = [...] and settings)."
+]
+_ToolsOpt = Annotated[
+    Path | None,
+    typer.Option("--tools", help="Tool table (TOML [tools.<name>] with tcp = [...] and settings)."),
+]
+_OffsetOpt = Annotated[
+    float | None,
+    typer.Option("--offset-mm", help="Tool tip this far from the edge along the surface normal."),
+]
+_LeadOpt = Annotated[
+    float | None,
+    typer.Option("--lead-deg", help="Travel angle: tool tilted forward along the path."),
+]
+_TiltOpt = Annotated[
+    float | None,
+    typer.Option("--tilt-deg", help="Work angle: tool tilted sideways about the path."),
+]
+_BlendOpt = Annotated[
+    float | None, typer.Option("--blend-mm", help="Largest blend radius between waypoints.")
+]
+_ToleranceOpt = Annotated[
+    float | None,
+    typer.Option(
+        "--tolerance-mm", help="Drop waypoints while the path stays this close (0: keep all)."
     ),
-    offset_mm: float | None = typer.Option(
-        None, "--offset-mm", help="Tool tip this far from the edge along the surface normal."
-    ),
-    lead_deg: float | None = typer.Option(
-        None, "--lead-deg", help="Travel angle: tool tilted forward along the path."
-    ),
-    tilt_deg: float | None = typer.Option(
-        None, "--tilt-deg", help="Work angle: tool tilted sideways about the path."
-    ),
+]
+_ApproachOpt = Annotated[
+    float | None,
+    typer.Option("--approach-mm", help="Approach and retract distance along the normal."),
+]
+_ReplayOutOpt = Annotated[Path, typer.Option("--out", "-o", help="Waypoints for the tool (JSON).")]
+
+
+@teach_app.command("replay")
+def replay_cmd(
+    path: Annotated[Path, typer.Option("--path", "-p", help="Learned path (JSON of teach edge).")],
+    tool: _ToolOpt,
+    tools: _ToolsOpt = None,
+    offset_mm: _OffsetOpt = None,
+    lead_deg: _LeadOpt = None,
+    tilt_deg: _TiltOpt = None,
     speed_mm_s: float | None = typer.Option(None, "--speed-mm-s", help="Process speed."),
     accel: float | None = typer.Option(None, "--accel-m-s2", help="Acceleration (m/s^2)."),
-    blend_mm: float | None = typer.Option(
-        None, "--blend-mm", help="Largest blend radius between waypoints."
-    ),
-    tolerance_mm: float | None = typer.Option(
-        None, "--tolerance-mm", help="Drop waypoints while the path stays this close (0: keep all)."
-    ),
-    approach_mm: float | None = typer.Option(
-        None, "--approach-mm", help="Approach and retract distance along the normal."
-    ),
+    blend_mm: _BlendOpt = None,
+    tolerance_mm: _ToleranceOpt = None,
+    approach_mm: _ApproachOpt = None,
     move: str = typer.Option("movel", "--move", help="movel or movep for the process moves."),
-    out: Path = typer.Option(
-        Path("replay.json"), "--out", "-o", help="Waypoints for the tool (JSON)."
-    ),
+    out: _ReplayOutOpt = Path("replay.json"),
     csv: Path | None = typer.Option(None, "--csv", help="Also write the waypoints as CSV."),
     script: Path | None = typer.Option(None, "--script", help="Write the URScript program."),
     run: bool = typer.Option(False, "--run", help="Run the program on the robot of --config."),
@@ -337,71 +354,37 @@ def replay_cmd(
 ) -> None:
     """Write a learned path as poses for another tool (waypoints JSON/CSV and a URScript program
     with blends) and optionally run it."""
-    from wristscan.daemon.teach.edge import PathFileError, read_edge_path
-    from wristscan.daemon.teach.replay import (
-        ReplayError,
-        ReplayOptions,
-        load_tool,
-        plan_replay,
-        run_program,
-        write_csv,
-        write_script,
-        write_waypoints,
-    )
+    from wristscan.daemon.teach.replay import ReplayError, plan_replay, run_program
 
     if move not in ("movel", "movep"):
         fail("--move must be movel or movep", EXIT_USAGE)
     if run and config is None:
         fail("--run needs --config (the robot to run on)", EXIT_USAGE)
-    try:
-        tool_def = load_tool(tool, tools)
-    except ValueError as exc:
-        fail(str(exc), EXIT_USAGE)
-    overrides: dict[str, Any] = {}
-    for key, value, scale in (
-        ("offset_m", offset_mm, 1e-3),
-        ("lead_rad", lead_deg, math.pi / 180),
-        ("tilt_rad", tilt_deg, math.pi / 180),
-        ("speed_m_s", speed_mm_s, 1e-3),
-        ("accel_m_s2", accel, 1.0),
-        ("blend_m", blend_mm, 1e-3),
-        ("tolerance_m", tolerance_mm, 1e-3),
-        ("approach_m", approach_mm, 1e-3),
-    ):
-        if value is not None:
-            overrides[key] = value * scale
-    try:
-        options = ReplayOptions.from_tool(tool_def, move=move, **overrides)
-    except ValueError as exc:
-        fail(str(exc), EXIT_USAGE)
-    try:
-        learned = read_edge_path(path)
-    except (OSError, PathFileError) as exc:
-        fail(f"cannot read the path {path}: {exc}", EXIT_USAGE)
+    overrides = _given(
+        offset_m=(offset_mm, 1e-3),
+        lead_rad=(lead_deg, math.pi / 180),
+        tilt_rad=(tilt_deg, math.pi / 180),
+        speed_m_s=(speed_mm_s, 1e-3),
+        accel_m_s2=(accel, 1.0),
+        blend_m=(blend_mm, 1e-3),
+        tolerance_m=(tolerance_mm, 1e-3),
+        approach_m=(approach_mm, 1e-3),
+    )
+    tool_def, options = _replay_options(tool, tools, move, overrides)
+    learned = _read_learned(path)
     cfg = None
     if run:
         assert config is not None
         cfg = load_config_or_exit(config)
         confirm_motion(cfg, yes, "the replay")
-    from wristscan.calib import kinematics
-
-    model = None
-    if cfg is None and learned.robot is not None:
-        try:
-            model = kinematics.get_model(learned.robot)
-        except ValueError:
-            model = None  # an unknown model name: no reachability check
+    model = _replay_model(learned, cfg)
     try:
         plan = plan_replay(learned, tool_def.tcp, options, cfg=cfg, model=model)
     except ReplayError as exc:
         fail(str(exc), EXIT_FAILED)
     for line in plan.summary_lines():
         typer.echo(line)
-    typer.echo(f"waypoints     {write_waypoints(out, plan)}")
-    if csv is not None:
-        typer.echo(f"csv           {write_csv(csv, plan)}")
-    if script is not None:
-        typer.echo(f"script        {write_script(script, plan)}")
+    _write_replay(plan, out, csv, script)
     if run:
         assert cfg is not None
         try:
@@ -409,3 +392,59 @@ def replay_cmd(
         except ReplayError as exc:
             fail(str(exc), EXIT_FAILED)
         typer.echo(f"run           {outcome}")
+
+
+def _given(**values: tuple[float | None, float]) -> dict[str, float]:
+    """The options given on the command line, each times its unit scale: ``name=(value,
+    scale)``, None values left out (the tool's settings stay)."""
+    return {key: value * scale for key, (value, scale) in values.items() if value is not None}
+
+
+def _replay_options(
+    tool: str, tools: Path | None, move: str, overrides: dict[str, float]
+) -> tuple[ToolDef, ReplayOptions]:
+    """The tool and the replay settings (its own, overridden by the options); exit 2 when they
+    cannot be read or do not fit."""
+    from wristscan.daemon.teach.replay import ReplayOptions, load_tool
+
+    try:
+        tool_def = load_tool(tool, tools)
+    except ValueError as exc:
+        fail(str(exc), EXIT_USAGE)
+    try:
+        options = ReplayOptions.from_tool(tool_def, move=move, **overrides)
+    except ValueError as exc:
+        fail(str(exc), EXIT_USAGE)
+    return tool_def, options
+
+
+def _read_learned(path: Path) -> LearnedPath:
+    from wristscan.daemon.teach.edge import PathFileError, read_edge_path
+
+    try:
+        return read_edge_path(path)
+    except (OSError, PathFileError) as exc:
+        fail(f"cannot read the path {path}: {exc}", EXIT_USAGE)
+
+
+def _replay_model(learned: LearnedPath, cfg: Config | None) -> Any:
+    """The robot model the path was learned on, for a reachability check without a robot to
+    ask (None: there is a robot, or the model is unknown)."""
+    from wristscan.calib import kinematics
+
+    if cfg is not None or learned.robot is None:
+        return None
+    try:
+        return kinematics.get_model(learned.robot)
+    except ValueError:
+        return None  # an unknown model name: no reachability check
+
+
+def _write_replay(plan: ReplayPlan, out: Path, csv: Path | None, script: Path | None) -> None:
+    from wristscan.daemon.teach.replay import write_csv, write_script, write_waypoints
+
+    typer.echo(f"waypoints     {write_waypoints(out, plan)}")
+    if csv is not None:
+        typer.echo(f"csv           {write_csv(csv, plan)}")
+    if script is not None:
+        typer.echo(f"script        {write_script(script, plan)}")

@@ -1,7 +1,9 @@
-"""A small typed subscriber API for wristscan's clouds (``wristscan.daemon.cloud.client``).
+"""A small typed subscriber API for wristscan's clouds; import it from the stable public path
+``wristscan.daemon.client``:
 
 ```python
-from wristscan.daemon.cloud.client import CloudClient
+from wristscan.daemon.client import CloudClient
+
 with CloudClient("wristscan/sim", connect=["tcp/127.0.0.1:7447"]) as client:
     cloud = client.recv(timeout=1.0)      # wsc1.Cloud or None
     if cloud is not None:

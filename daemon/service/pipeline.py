@@ -14,7 +14,6 @@ marks the pipeline failed, which the service turns into a non-zero exit (systemd
 
 from __future__ import annotations
 
-import ctypes
 import gc
 import logging
 import sys
@@ -23,24 +22,25 @@ import time
 from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Generic, TypeVar
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from wristscan.calib import align
-from wristscan.daemon.sync.pairing import PairedBatch, Pairer
+from wristscan.daemon.service.instruments import STEPS, LatencyWindow, StepCpu
+from wristscan.daemon.service.readers import Reader, name_os_thread
+from wristscan.daemon.sync.batch import PairedBatch
+from wristscan.daemon.sync.pairing import Pairer
 from wristscan.drivers.base import Device, DriverError
 from wristscan.drivers.records import Profile, RobotState, TableState
 
-__all__ = ["AlignmentSetup", "LatencyWindow", "Pipeline", "PipelineSettings"]
+__all__ = ["AlignmentSetup", "Pipeline", "PipelineSettings"]
 
 log = logging.getLogger(__name__)
 
 _SLOW_TICK_NS = 50_000_000
 """A tick longer than this (five batch periods at the default) is counted and logged."""
-
-T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -83,151 +83,6 @@ class PipelineSettings:
     transport jitter (its jump tolerance is 2 ms). Drivers whose stamps come from the kernel
     (``kernel_stamps``, the UDP drivers on Linux) do not need it, and the interval is left
     alone for them: every forced switch costs the worker a wake-up. None: always leave it."""
-
-
-class LatencyWindow:
-    """The latest ``size`` per-profile latencies of each stage (ns), for percentiles in ``stats``.
-
-    Stages: ``transport`` (estimated exposure to the driver's receipt: sensor latency plus the
-    link), ``wait`` (receipt to the worker's tick that paired it: batching and waiting for the
-    robot state after the exposure), ``process`` (that tick to the publish call returning:
-    pairing, alignment, encoding, zenoh put) and ``total`` (exposure to published).
-    """
-
-    STAGES = ("transport", "wait", "process", "total")
-
-    def __init__(self, size: int = 20000) -> None:
-        self.size = size
-        self._buf = np.zeros((len(self.STAGES), size), dtype=np.int64)
-        self._n = 0
-        self._lock = threading.Lock()
-
-    def add(self, exposure_ns: NDArray[np.int64], arrival_ns: NDArray[np.int64], tick_ns: int,
-            done_ns: int) -> None:  # fmt: skip
-        k = min(int(exposure_ns.shape[0]), self.size)
-        if k == 0:
-            return
-        e, a = exposure_ns[-k:], arrival_ns[-k:]
-        rows = np.stack([a - e, tick_ns - a, np.full(k, done_ns - tick_ns), done_ns - e])
-        with self._lock:
-            start = self._n % self.size
-            first = min(k, self.size - start)
-            self._buf[:, start : start + first] = rows[:, :first]
-            self._buf[:, : k - first] = rows[:, first:]
-            self._n += k
-
-    def summary(self) -> dict[str, dict[str, float]]:
-        """p50, p99 and max of each stage in ms over the window (empty before any batch)."""
-        with self._lock:
-            data = self._buf[:, : min(self._n, self.size)].astype(np.float64) * 1e-6
-        if data.shape[1] == 0:
-            return {}
-        p50, p99 = np.percentile(data, [50.0, 99.0], axis=1)
-        mx = data.max(axis=1)
-        return {
-            st: {
-                "p50": round(float(p50[i]), 3),
-                "p99": round(float(p99[i]), 3),
-                "max": round(float(mx[i]), 3),
-            }
-            for i, st in enumerate(self.STAGES)
-        }
-
-
-class _StepCpu:
-    """Adds the calling thread's CPU time inside ``with`` to one step's total (ns). One object
-    per step, reused: no allocation on the worker's path; steps do not nest."""
-
-    __slots__ = ("_t0", "ns")
-
-    def __init__(self) -> None:
-        self.ns = 0
-        self._t0 = 0
-
-    def __enter__(self) -> None:
-        self._t0 = time.thread_time_ns()
-
-    def __exit__(self, *exc: object) -> None:
-        self.ns += time.thread_time_ns() - self._t0
-
-
-_STEPS = ("read", "pair", "align", "publish")
-
-
-def _name_os_thread(name: str) -> None:
-    """Give the calling thread its name at the OS level too (Linux, 15 bytes), so that
-    ``top -H``, ``ps -L`` and ``/proc/<pid>/task/*/comm`` tell the pipeline's threads apart."""
-    if not sys.platform.startswith("linux"):
-        return
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(15, name.encode("ascii", "replace")[:15], 0, 0, 0)  # PR_SET_NAME
-    except (OSError, AttributeError):  # no prctl: a cosmetic loss only
-        pass
-
-
-class _Reader(Generic[T]):
-    """A thread that moves records from a driver into a bounded queue.
-
-    The queue is a ``deque`` with one producer (this thread) and one consumer (the worker):
-    ``append`` and ``popleft`` are atomic, so no lock or condition is needed per record (a
-    ``queue.Queue`` costs both on each side, thousands of times a second). The bound is checked
-    before appending; the consumer only ever shortens the deque, so it is never exceeded.
-    """
-
-    def __init__(
-        self,
-        name: str,
-        device: Device[T],
-        sink: deque[T],
-        maxsize: int,
-        on_drop: Callable[[], None],
-        on_fail: Callable[[BaseException], None],
-        signal: threading.Event | None = None,
-    ) -> None:
-        self.device = device
-        self.signal = signal
-        self.sink = sink
-        self.maxsize = maxsize
-        self._on_drop = on_drop
-        self._on_fail = on_fail
-        self._stop = threading.Event()
-        self.errors = 0
-        self.thread = threading.Thread(target=self._run, name=f"reader-{name}", daemon=True)
-
-    def start(self) -> None:
-        self.thread.start()
-
-    def stop(self) -> None:
-        self._stop.set()
-
-    def join(self, timeout: float) -> None:
-        self.thread.join(timeout)
-
-    def _run(self) -> None:
-        _name_os_thread(self.thread.name)
-        sink, maxsize, read, signal = self.sink, self.maxsize, self.device.read, self.signal
-        try:
-            while not self._stop.is_set():
-                try:
-                    rec = read(timeout=0.05)
-                except DriverError as exc:
-                    # The driver reconnects by itself; back off a little and keep going.
-                    self.errors += 1
-                    log.warning("%s: %s", self.device.kind, exc)
-                    self._stop.wait(0.1)
-                    continue
-                if rec is None:
-                    continue
-                if len(sink) < maxsize:
-                    sink.append(rec)
-                    if signal is not None and not signal.is_set():
-                        signal.set()  # (set() takes a lock and notifies even when set)
-                else:
-                    self._on_drop()
-        except BaseException as exc:
-            log.exception("%s reader failed", self.device.kind)
-            self._on_fail(exc)
 
 
 class Pipeline:
@@ -277,33 +132,7 @@ class Pipeline:
         self.inline_sensor = self._sensor_stamped if s.inline_sensor is None else s.inline_sensor
         self.read_errors: Counter[str] = Counter()
         """Driver errors met while reading inline, by device (the drivers reconnect)."""
-        self._readers: list[_Reader[Any]] = []
-        if not self.inline_sensor:
-            self._readers.append(
-                _Reader(
-                    "sensor",
-                    sensor,
-                    self._profiles,
-                    s.profile_queue,
-                    self._drop_profile,
-                    self._fail,
-                )
-            )
-        states: list[tuple[str, Device[Any], deque[Any]]] = [("robot", robot, self._robot_q)]
-        if table is not None:
-            states.append(("table", table, self._table_q))
-        for name, device, sink in states:
-            self._readers.append(
-                _Reader(
-                    name,
-                    device,
-                    sink,
-                    s.state_queue,
-                    self._drop_state,
-                    self._fail,
-                    self._states_arrived,
-                )
-            )
+        self._readers = self._make_readers()
         self._worker = threading.Thread(target=self._work, name="pipeline-worker", daemon=True)
         self._started = False
         self._saved_switch_interval: float | None = None
@@ -314,11 +143,44 @@ class Pipeline:
         """Ticks that took over ``_SLOW_TICK_NS`` from start to the last publish."""
         self.state_waited_s = 0.0
         """Wall time the worker spent at ticks waiting for the states of received profiles."""
-        self._cpu = {step: _StepCpu() for step in _STEPS}
+        self._cpu = {step: StepCpu() for step in STEPS}
         """The worker's CPU time by step: reading the sensor, pairing, aligning, publishing."""
         self.tick_ms_max = 0.0
         self._gc_t0 = 0
         self._tick_ns = 0
+
+    def _make_readers(self) -> list[Reader[Any]]:
+        """A reader thread per device: the robot, the table if any, and the sensor unless it is
+        read inline by the worker. State readers wake the worker's wait for states."""
+        s = self.settings
+        readers: list[Reader[Any]] = []
+        if not self.inline_sensor:
+            readers.append(
+                Reader(
+                    "sensor",
+                    self.sensor,
+                    self._profiles,
+                    s.profile_queue,
+                    self._drop_profile,
+                    self._fail,
+                )
+            )
+        states: list[tuple[str, Device[Any], deque[Any]]] = [("robot", self.robot, self._robot_q)]
+        if self.table is not None:
+            states.append(("table", self.table, self._table_q))
+        for name, device, sink in states:
+            readers.append(
+                Reader(
+                    name,
+                    device,
+                    sink,
+                    s.state_queue,
+                    self._drop_state,
+                    self._fail,
+                    self._states_arrived,
+                )
+            )
+        return readers
 
     # --- counters and health ----------------------------------------------------------------
     def _drop_profile(self) -> None:
@@ -598,7 +460,7 @@ class Pipeline:
             )
 
     def _work(self) -> None:
-        _name_os_thread(self._worker.name)
+        name_os_thread(self._worker.name)
         period = self.settings.batch_s
         next_status = time.monotonic() + self.settings.status_period_s
         next_tick = time.monotonic() + period

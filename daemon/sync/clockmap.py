@@ -68,7 +68,8 @@ line. The drift survives a restart (same oscillator), so a new epoch locks on it
 within a few tens of points.
 
 Wrapping counters (SCIP 24-bit ms, 32-bit us, ...) are unwrapped before they reach the mapper,
-by :class:`CounterUnwrapper` or :func:`unwrap`.
+by :class:`~.counters.CounterUnwrapper` or :func:`~.counters.unwrap`. The settings are
+:class:`~.clockconfig.ClockConfig`; the line and its slope search live in :mod:`.envelope`.
 """
 
 from __future__ import annotations
@@ -77,34 +78,21 @@ import itertools
 import logging
 import math
 from collections import deque
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from wristscan.daemon.sync.clockconfig import ClockConfig
+from wristscan.daemon.sync.envelope import EnvelopeLine, fit_window
+
 logger = logging.getLogger(__name__)
 
-__all__ = [
-    "ClockConfig",
-    "ClockMapper",
-    "ClockUnlockedError",
-    "CounterUnwrapper",
-    "unwrap",
-    "unwrap_nearest",
-]
+__all__ = ["ClockMapper", "ClockUnlockedError"]
 
 IntArray = NDArray[np.int64]
 FloatArray = NDArray[np.float64]
 
-# Slope bisection: 40 halvings of a +-1e-3 interval resolve the drift to ~2e-15, then the exact
-# hull edge is taken from the two active points.
-_BISECT_ITERATIONS = 40
-_PRUNE_AFTER = 10
-_CHECK_EVERY = 3
-# A warm start brackets the previous slope by this much (2 ppm: successive fits of a window
-# differ by far less; the edges at the quartiles by about that).
-_WARM_HALF_WIDTH = 2e-6
 # The uncertainty is the RMS of the split differences of this many recent refits.
 _U_HISTORY = 16
 # Recent arrivals an arrival below the line is compared with (jump or descending floor).
@@ -113,97 +101,6 @@ _RECENT = 8
 
 class ClockUnlockedError(RuntimeError):
     """The mapper has no line for the requested epoch yet."""
-
-
-@dataclass(frozen=True)
-class ClockConfig:
-    """Settings of one :class:`ClockMapper`; all durations in nanoseconds of device time."""
-
-    window_ns: int = 30_000_000_000
-    """Sliding window of the fit."""
-    bucket_ns: int = 10_000_000
-    """Points are reduced to the lowest one per bucket of this length."""
-    refit_interval_ns: int = 50_000_000
-    """Refit at most this often once locked (every bucket while unlocked)."""
-    min_span_ns: int = 100_000_000
-    """Device-time span needed before the drift is fitted from the data of an epoch."""
-    min_points: int = 20
-    """Points an epoch needs before it can lock."""
-    min_lock_span_ns: int = 100_000_000
-    """Device-time span an epoch needs before it can lock (after a reset the offset rests on
-    the lowest delay seen since, which takes some arrivals to find)."""
-    max_uncertainty_ns: float = 200_000.0
-    """An epoch locks once the uncertainty at its newest point is below this."""
-    unlock_factor: float = 10.0
-    """A locked epoch unlocks only if its uncertainty exceeds this many ``max_uncertainty_ns``."""
-    prune_margin_ns: int = 1_000_000
-    """Buckets above a later one by more than this (plus ``max_drift`` times their distance)
-    are dropped from the fit: they cannot touch the envelope (a backlog read in a burst)."""
-    max_drift: float = 1e-3
-    """Largest |drift| searched for (1e-3 = 1000 ppm); also the slope uncertainty before a fit."""
-    typical_drift: float = 100e-6
-    """Scale of a device clock's drift (crystals: tens of ppm): the prior of the first epoch's
-    slope is 0 with this uncertainty, so a slope from little data is shrunk towards 0."""
-    jump_tolerance_ns: int = 2_000_000
-    """An arrival further below a locked line than this (plus 3 sigma) is a causality
-    violation: a new epoch if it dropped there at once (clock jump), else a re-anchored fit."""
-    reanchor_tolerance_ns: int = 500_000
-    """An arrival further below a locked line than this (plus 3 sigma), short of a clock jump,
-    means the fit locked on a raised delay floor: it is re-anchored (same epoch)."""
-    persist_ns: int = 500_000_000
-    """After device time went back (by less than ``reorder_tolerance_ns``), arrivals late by more
-    than the jump tolerance for this long mean the device clock stepped back; device time not
-    advancing for this long (host time) means it stopped. Either restarts the fit."""
-    reorder_tolerance_ns: int = 50_000_000
-    """Device time may go back by this much (reordered datagrams) without meaning a reset."""
-    eval_fraction: float = 0.5
-    """Where in the window the fitted line is tightest: 0 oldest, 1 newest point."""
-    latency_ns: int = 0
-    """Subtracted from every mapped time: event (exposure) to device timestamp, plus the transport
-    delay floor (see the module docstring)."""
-    keep_drift_on_reset: bool = True
-    """Reuse the drift of the previous epoch after a restart."""
-    max_epochs_kept: int = 4
-    """Old epochs whose final line stays available to :meth:`ClockMapper.to_host`."""
-
-    def __post_init__(self) -> None:
-        for name in ("window_ns", "bucket_ns", "refit_interval_ns", "min_span_ns", "persist_ns"):
-            if getattr(self, name) <= 0:
-                raise ValueError(f"ClockConfig.{name} must be > 0")
-        if not 0.0 <= self.eval_fraction <= 1.0:
-            raise ValueError("ClockConfig.eval_fraction must be in [0, 1]")
-        if not 0.0 < self.max_drift < 0.1:
-            raise ValueError("ClockConfig.max_drift must be in (0, 0.1)")
-        if not 0.0 < self.typical_drift <= self.max_drift:
-            raise ValueError("ClockConfig.typical_drift must be in (0, max_drift]")
-        if self.min_points < 2:
-            raise ValueError("ClockConfig.min_points must be >= 2")
-        if self.unlock_factor < 1.0 or self.prune_margin_ns < 0:
-            raise ValueError("ClockConfig: unlock_factor must be >= 1, prune_margin_ns >= 0")
-
-
-@dataclass(frozen=True, slots=True)
-class _Line:
-    """``host = y_ref + (x - x_ref) + a + d * (x - x_ref)``; ``x_e`` relative to ``x_ref``."""
-
-    x_ref: int
-    y_ref: int
-    a: float
-    d: float
-    x_e: float
-    u0: float
-    u_slope: float
-    locked: bool
-
-    def rel(self, dx: float) -> float:
-        return self.a + self.d * dx
-
-    def uncertainty(self, dx: FloatArray) -> FloatArray:
-        out: FloatArray = np.sqrt(self.u0**2 + (self.u_slope * (dx - self.x_e)) ** 2)
-        return out
-
-    def uncertainty1(self, dx: float) -> float:
-        return math.hypot(self.u0, self.u_slope * (dx - self.x_e))
 
 
 class ClockMapper:
@@ -226,10 +123,10 @@ class ClockMapper:
         self.n_resets = 0
         self.n_reanchors = 0
         self.n_fed = 0
-        self._old: dict[int, _Line] = {}
+        self._old: dict[int, EnvelopeLine] = {}
         # Drift kept from the previous epoch: (drift, its uncertainty, span (ns) it was fitted on).
         self._prior: tuple[float, float, float] | None = None
-        self._line: _Line | None = None
+        self._line: EnvelopeLine | None = None
         self._begin_state()
 
     # ------------------------------------------------------------------ state
@@ -383,7 +280,7 @@ class ClockMapper:
         x_back = self._excess[0][0]
         return abs(x - self._back_from - period) <= abs(x - x_back - period)
 
-    def _abrupt(self, line: _Line, gap: float, tol: float) -> bool:
+    def _abrupt(self, line: EnvelopeLine, gap: float, tol: float) -> bool:
         """Whether an arrival ``gap`` below ``line`` dropped there at once: by more than ``tol``
         below the lowest of the recent arrivals. Arrivals in order can only come down by the
         device time between them, so a backlog draining or a load ending descends in steps of
@@ -507,7 +404,9 @@ class ClockMapper:
         if self._prior is not None:
             need = max(need, min(self._prior[2], 0.5 * cfg.window_ns))
         if span >= need and n >= 6:
-            d, a, x_e, u0, u_slope = self._fit_slope(X, R, span)
+            d, a, x_e, u0, u_slope = fit_window(
+                X, R, span, cfg, self._line, self._prior, self._u_hist
+            )
             self._fit_span = span
         else:
             d, u_prior, self._fit_span = (
@@ -526,7 +425,7 @@ class ClockMapper:
             else:
                 u0 = math.inf
             u_slope = u_prior if math.isfinite(u0) else cfg.max_drift
-        line = _Line(self._x_ref, self._y_ref, a, d, x_e, u0, u_slope, False)
+        line = EnvelopeLine(self._x_ref, self._y_ref, a, d, x_e, u0, u_slope, False)
         u_last = line.uncertainty1(float(self._x_last - self._x_ref))
         if self._ever_locked:
             # Hysteresis: a lock is not dropped for an uncertainty that wavers around the limit.
@@ -537,7 +436,7 @@ class ClockMapper:
                 and span >= cfg.min_lock_span_ns
                 and u_last <= cfg.max_uncertainty_ns
             )
-        self._line = _Line(self._x_ref, self._y_ref, a, d, x_e, u0, u_slope, locked)
+        self._line = EnvelopeLine(self._x_ref, self._y_ref, a, d, x_e, u0, u_slope, locked)
         if locked and not self._ever_locked:
             self._ever_locked = True
             logger.info(
@@ -548,65 +447,9 @@ class ClockMapper:
                 u_last / 1e3,
             )
 
-    def _fit_slope(
-        self, X: FloatArray, R: FloatArray, span: float
-    ) -> tuple[float, float, float, float, float]:
-        """Offset and drift from the window: ``(d, a, x_e, u0, u_slope)``."""
-        cfg = self.config
-        lo, hi = -cfg.max_drift, cfg.max_drift
-
-        def clipped(v: float) -> bool:  # a slope at the end of the range: undetermined
-            return abs(v) >= cfg.max_drift * (1.0 - 1e-9)
-
-        f = cfg.eval_fraction
-        x0 = float(X.min())
-        x_e = x0 + f * span
-        d = _support_slope(X, R, x_e, lo, hi, None if self._line is None else self._line.d)
-        # Uncertainty: the same estimator on the even and on the odd buckets gives two
-        # independent half-data estimates; half their difference is of the order of the full
-        # estimate's error whatever the delay distribution. Windowed RMS: one split is a noisy
-        # scale; old (early, poor) fits drop out.
-        d1 = _support_slope(X[0::2], R[0::2], x_e, lo, hi, d)
-        d2 = _support_slope(X[1::2], R[1::2], x_e, lo, hi, d)
-        v1 = float((R[0::2] - d1 * X[0::2]).min()) + d1 * x_e
-        v2 = float((R[1::2] - d2 * X[1::2]).min()) + d2 * x_e
-        dv = 0.5 * (v1 - v2)
-        dd = cfg.max_drift if clipped(d1) or clipped(d2) else 0.5 * (d1 - d2)
-        self._u_hist.append((dv * dv, dd * dd))
-        u0 = math.sqrt(sum(h[0] for h in self._u_hist) / len(self._u_hist))
-        u_slope = math.sqrt(sum(h[1] for h in self._u_hist) / len(self._u_hist))
-        # What was known before these data: the drift of the previous epoch or fit (same
-        # oscillator), else 0 with the typical drift as its scale.
-        if self._prior is not None:
-            pd, pu = self._prior[0], self._prior[1]
-        else:
-            pd, pu = 0.0, cfg.typical_drift
-        pu = max(pu, 0.01 * cfg.typical_drift)
-        # The lower envelope is a straight line only where the delay floor is reached. When
-        # every arrival of a stretch reaching one end of the window is late (sustained load
-        # longer than the rest of the window), the hull edge spanning x_e tilts towards it.
-        # The edges spanning the quartiles then disagree by more than the noise: the data do
-        # not determine the drift, so it stays where it was (a clock's drift changes slowly).
-        xq = (x0 + max(f - 0.25, 0.0) * span, x0 + min(f + 0.25, 1.0) * span)
-        dq = (_support_slope(X, R, xq[0], lo, hi, d), _support_slope(X, R, xq[1], lo, hi, d))
-        if abs(dq[0] - dq[1]) > max(6.0 * u_slope, 0.01 * cfg.typical_drift):
-            ref = self._line.d if self._line is not None else pd
-            G = R - ref * X
-            i0 = int(np.argmin(G))
-            u_ref = self._line.u_slope if self._line is not None else pu
-            return ref, float(G[i0]), float(X[i0]), u0, u_ref
-        # Combine with the prior (inverse-variance weights): a slope from a short or noisy
-        # stretch then counts for little, and one at the end of the search range for nothing.
-        us = cfg.max_drift if clipped(d) else u_slope
-        w = pu * pu / (us * us + pu * pu)
-        d = pd + w * (d - pd)
-        u_slope = us * pu / math.sqrt(us * us + pu * pu)
-        a = float((R - d * X).min())
-        return d, a, x_e, u0, u_slope
-
     # ------------------------------------------------------------------ mapping
 
-    def _get_line(self, epoch: int | None) -> _Line:
+    def _get_line(self, epoch: int | None) -> EnvelopeLine:
         if epoch is None or epoch == self.epoch:
             line = self._line
         else:
@@ -683,147 +526,3 @@ class ClockMapper:
             "resets": self.n_resets,
             "reanchors": self.n_reanchors,
         }
-
-
-def _support_slope(
-    X: FloatArray, R: FloatArray, x_e: float, lo: float, hi: float, guess: float | None = None
-) -> float:
-    """Slope of the highest line at ``x_e`` lying below all points ``(X, R)``.
-
-    ``f(d) = min_i R_i + d (x_e - X_i)`` is concave; its supergradient at ``d`` is ``x_e - X_i*``
-    of the active point, so bisection on its sign finds the maximiser: the lower-hull edge
-    spanning ``x_e``. Slopes outside ``[lo, hi]`` are clipped to the range. ``guess``: a slope
-    near the answer (the previous fit's); when ``guess +- _WARM_HALF_WIDTH`` brackets the
-    answer, the search starts there with the points pruned at once (same edge, a third of the
-    passes over the whole window).
-    """
-    span = float(X.max() - X.min())
-    pruned = False
-    if guess is not None:
-        a, b = max(lo, guess - _WARM_HALF_WIDTH), min(hi, guess + _WARM_HALF_WIDTH)
-        Ga = R - a * X
-        ia = int(Ga.argmin())
-        if a < b and X[ia] <= x_e and X[int((R - b * X).argmin())] > x_e:
-            lo, hi = a, b
-            keep = Ga - Ga[ia] <= (hi - lo) * span + 1.0  # as the pruning below, at slope lo
-            X, R = X[keep], R[keep]
-            pruned = True
-    il = ir = -1  # active points at lo and hi once pruned
-    for it in range(_BISECT_ITERATIONS):
-        d = 0.5 * (lo + hi)
-        G = R - d * X
-        i = int(G.argmin())
-        if X[i] > x_e:
-            hi, ir = d, i
-        else:
-            lo, il = d, i
-        if not pruned and it == _PRUNE_AFTER:
-            # Only points within (hi - lo) * span of the envelope at slope d (an end of the new
-            # interval) can be active anywhere in [lo, hi]: drop the rest, the remaining
-            # halvings get cheap.
-            keep = G - G[i] <= (hi - lo) * span + 1.0
-            X, R = X[keep], R[keep]
-            il = ir = -1
-            pruned = True
-        elif pruned and il >= 0 and ir >= 0 and it % _CHECK_EVERY == 0:
-            # Done once the chord of the two active points is a supporting line: it touches the
-            # envelope on both sides of x_e, so it is the edge the halvings converge to (they
-            # take ~40 steps; the edge is usually isolated after ~15).
-            s = float((R[ir] - R[il]) / (X[ir] - X[il]))
-            if lo <= s <= hi and float((R - s * X).min()) >= float(R[il] - s * X[il]) - 1.0:
-                return s
-    # The two active points of the final interval give the edge exactly.
-    il = int((R - lo * X).argmin())
-    ir = int((R - hi * X).argmin())
-    if X[ir] > X[il]:
-        exact = float((R[ir] - R[il]) / (X[ir] - X[il]))
-        if lo - 1e-12 <= exact <= hi + 1e-12:
-            return exact
-    return 0.5 * (lo + hi)
-
-
-# ---------------------------------------------------------------------- counters
-
-
-def unwrap(raw: ArrayLike, modulus: int, tick_ns: int = 1) -> IntArray:
-    """Offline unwrapping of a counter that wraps at ``modulus`` ticks: monotonic ns.
-
-    Each step is taken modulo ``modulus``; a step of more than half the modulus is read as going
-    backwards (a reset), which the output keeps, so a :class:`ClockMapper` still sees the reset.
-    """
-    r = np.asarray(raw, dtype=np.int64)
-    if r.ndim != 1:
-        raise ValueError(f"unwrap: expected a 1-D array, got shape {r.shape}")
-    if r.shape[0] == 0:
-        return r.copy()
-    m = np.int64(modulus)
-    step = np.diff(r) % m
-    step = np.where(step > m // 2, step - m, step)
-    out: IntArray = (r[0] + np.concatenate([[0], np.cumsum(step)])) * np.int64(tick_ns)
-    return out
-
-
-def unwrap_nearest(raw: ArrayLike, reference: ArrayLike, modulus: int) -> IntArray:
-    """The value congruent to ``raw`` modulo ``modulus`` that is nearest to ``reference``
-    (an already unwrapped value of the same counter)."""
-    r = np.asarray(raw, dtype=np.int64)
-    ref = np.asarray(reference, dtype=np.int64)
-    m = np.int64(modulus)
-    k = np.floor_divide(ref - r + m // 2, m)
-    out: IntArray = r + k * m
-    return out
-
-
-class CounterUnwrapper:
-    """Online unwrapping of a device counter that wraps at ``modulus`` ticks of ``tick_ns``.
-
-    ``unwrapper(raw, host_ns)`` returns ns on a monotonic scale: each raw value becomes the value
-    congruent to it that is nearest to the newest one so far, so wraps and reordered records
-    (slightly older values arriving late) both come out right. With host receive times, a step
-    is accepted only when it is consistent with the host time elapsed: forward by at most
-    ``elapsed * (1 + max_drift) + slack_ns``, backward by at most ``slack_ns``. Anything else is
-    a counter reset: the raw value is then passed on without a wrap correction, so the output
-    jumps and the clock mapper sees the discontinuity.
-    """
-
-    def __init__(
-        self,
-        modulus: int,
-        tick_ns: int = 1,
-        max_drift: float = 1e-3,
-        slack_ns: int = 100_000_000,
-    ) -> None:
-        if modulus < 2 or tick_ns < 1:
-            raise ValueError("CounterUnwrapper: modulus must be >= 2 and tick_ns >= 1")
-        self.modulus = int(modulus)
-        self.tick_ns = int(tick_ns)
-        self.max_drift = float(max_drift)
-        self.slack_ns = int(slack_ns)
-        self.n_wraps = 0
-        self.n_resets = 0
-        self._newest: int | None = None  # newest unwrapped value (ticks)
-        self._newest_host: int | None = None
-
-    def __call__(self, raw: int, host_ns: int | None = None) -> int:
-        m = self.modulus
-        raw = int(raw) % m
-        newest = self._newest
-        if newest is None:
-            self._newest, self._newest_host = raw, host_ns
-            return raw * self.tick_ns
-        out = raw + ((newest - raw + m // 2) // m) * m
-        step_ns = (out - newest) * self.tick_ns
-        plausible = True
-        if host_ns is not None and self._newest_host is not None:
-            elapsed = int(host_ns) - self._newest_host
-            plausible = (
-                -self.slack_ns <= step_ns <= elapsed * (1.0 + self.max_drift) + self.slack_ns
-            )
-        if not plausible:
-            self.n_resets += 1
-            out = raw + (newest // m) * m
-            self._newest, self._newest_host = out, host_ns
-        elif out > newest:
-            self.n_wraps += out // m - newest // m
-            self._newest, self._newest_host = out, host_ns
-        return out * self.tick_ns

@@ -29,24 +29,22 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field, replace
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
 from wristscan.calib import kinematics
+from wristscan.daemon.sync.batch import PairedBatch, concat_batches
 from wristscan.daemon.sync.buffers import Reason, RobotStateBuffer, SampleBuffer, ScalarBuffer
-from wristscan.daemon.sync.clockmap import (
-    ClockConfig,
-    ClockMapper,
-    CounterUnwrapper,
-    unwrap_nearest,
-)
+from wristscan.daemon.sync.clockconfig import ClockConfig
+from wristscan.daemon.sync.clockmap import ClockMapper
+from wristscan.daemon.sync.counters import CounterUnwrapper, unwrap_nearest
 from wristscan.drivers.records import Profile, RobotState, TableState
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["DROP_REASONS", "PairedBatch", "Pairer", "PairerConfig"]
+__all__ = ["DROP_REASONS", "Pairer", "PairerConfig"]
 
 IntArray = NDArray[np.int64]
 FloatArray = NDArray[np.float64]
@@ -158,76 +156,6 @@ class PairerConfig:
             raise ValueError(f"PairerConfig.mode must be 'clock' or 'encoder', not {self.mode!r}")
         if self.max_wait_ns <= 0 or self.max_pending < 1 or self.max_batch_profiles < 1:
             raise ValueError("PairerConfig: max_wait_ns, max_pending, max_batch_profiles > 0")
-
-
-@dataclass
-class PairedBatch:
-    """Profiles paired with their robot state, ready for vectorised alignment.
-
-    Per profile ``(P,)``: ``sensor_id``, ``frame_counter``, ``exposure_ns`` and ``arrival_ns``
-    (host monotonic: the estimated exposure and the driver's receipt), ``clock_uncertainty_ns``,
-    ``flange2base (P, 4, 4)``, ``table_angle`` (rad) or None.
-    Per point ``(N,)``: ``y``, ``z`` (m, sensor frame), ``valid``, ``intensity`` (only when every
-    profile has one), ``profile_index`` into the profiles; profile ``k`` owns points
-    ``offsets[k]:offsets[k + 1]``.
-    """
-
-    sensor_id: NDArray[np.int64]
-    frame_counter: IntArray
-    exposure_ns: IntArray
-    clock_uncertainty_ns: FloatArray
-    flange2base: FloatArray
-    table_angle: FloatArray | None
-    y: FloatArray
-    z: FloatArray
-    valid: NDArray[np.bool_]
-    intensity: NDArray[np.uint8] | None
-    profile_index: NDArray[np.uint32]
-    offsets: IntArray
-    arrival_ns: IntArray | None = None
-
-    @property
-    def n_profiles(self) -> int:
-        return int(self.exposure_ns.shape[0])
-
-    @property
-    def n_points(self) -> int:
-        return int(self.y.shape[0])
-
-
-def _concat(batches: list[PairedBatch]) -> PairedBatch:
-    """One batch of the profiles of ``batches``, in order (the points are copied once)."""
-    if len(batches) == 1:
-        return batches[0]
-
-    def cat(name: str) -> Any:
-        parts = [getattr(b, name) for b in batches]
-        return None if any(p is None for p in parts) else np.concatenate(parts)
-
-    sizes = [b.n_profiles for b in batches]
-    first = np.cumsum([0, *sizes[:-1]])
-    point_base = np.cumsum([0, *[b.n_points for b in batches[:-1]]])
-    index = np.concatenate(
-        [b.profile_index + np.uint32(f) for b, f in zip(batches, first, strict=True)]
-    )
-    offsets = np.concatenate(
-        [[0], *[b.offsets[1:] + p for b, p in zip(batches, point_base, strict=True)]]
-    ).astype(np.int64)
-    return PairedBatch(
-        sensor_id=cat("sensor_id"),
-        frame_counter=cat("frame_counter"),
-        exposure_ns=cat("exposure_ns"),
-        clock_uncertainty_ns=cat("clock_uncertainty_ns"),
-        flange2base=cat("flange2base"),
-        table_angle=cat("table_angle"),
-        y=cat("y"),
-        z=cat("z"),
-        valid=cat("valid"),
-        intensity=cat("intensity"),
-        profile_index=index,
-        offsets=offsets,
-        arrival_ns=cat("arrival_ns"),
-    )
 
 
 class Pairer:
@@ -442,12 +370,12 @@ class Pairer:
         n = 0
         for b in batches:
             if group and n + b.n_profiles > self.config.max_batch_profiles:
-                out.append(_concat(group))
+                out.append(concat_batches(group))
                 group, n = [], 0
             group.append(b)
             n += b.n_profiles
         if group:
-            out.append(_concat(group))
+            out.append(concat_batches(group))
         return out
 
     def flush(self, now_ns: int | None = None) -> list[PairedBatch]:

@@ -294,7 +294,7 @@ def test_record_user_errors(
 
 
 def test_target_from_config_file(tmp_path: Path) -> None:
-    from wristscan.daemon.cli.status import resolve_target
+    from wristscan.daemon.cli._remote import resolve_target
 
     src = Path(__file__).resolve().parents[3] / "config" / "sim.toml"
     text = src.read_text().replace(
@@ -318,7 +318,8 @@ def test_target_from_config_file(tmp_path: Path) -> None:
 
 
 def test_breakdown_of_counters() -> None:
-    from wristscan.daemon.cli.status import breakdown, flatten, table
+    from wristscan.daemon.cli._common import table
+    from wristscan.daemon.cli.status import breakdown, flatten
 
     assert breakdown({"received": 10, "published": 7, "dropped": 3}) == (
         "received 10 = published 7 + dropped 3"

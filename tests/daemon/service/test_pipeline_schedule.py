@@ -33,6 +33,9 @@ class _SilentRobot(Robot):
         time.sleep(min(timeout if timeout is not None else 0.05, 0.05))
         return None
 
+    def tcp_offset(self) -> np.ndarray:
+        return np.zeros(6)
+
     def move_l(self, pose: Any, speed: float, accel: float, asynchronous: bool = False) -> None:
         raise NotImplementedError
 

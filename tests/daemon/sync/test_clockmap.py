@@ -5,14 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from wristscan.daemon.sync.clockmap import (
-    ClockConfig,
-    ClockMapper,
-    ClockUnlockedError,
-    CounterUnwrapper,
-    unwrap,
-    unwrap_nearest,
-)
+from wristscan.daemon.sync.clockconfig import ClockConfig
+from wristscan.daemon.sync.clockmap import ClockMapper, ClockUnlockedError
+from wristscan.daemon.sync.counters import CounterUnwrapper, unwrap, unwrap_nearest
 
 MS = 1_000_000
 S = 1_000_000_000
@@ -387,7 +382,7 @@ def test_slope_search_finds_the_hull_edge_with_or_without_a_warm_start() -> None
     # between a point on each side (every chord lies on or above the hull there). The search
     # must find that edge from the full range, from a good guess and from a guess too far off
     # to bracket it (then it falls back to the full range).
-    from wristscan.daemon.sync.clockmap import _support_slope
+    from wristscan.daemon.sync.envelope import support_slope
 
     dev, host, _ = synth(30.0, rate_hz=1000.0, jitter="gamma", jitter_ns=0.2e6, spikes=0.02)
     cm = ClockMapper()
@@ -403,5 +398,5 @@ def test_slope_search_finds_the_hull_edge_with_or_without_a_warm_start() -> None
         k = np.unravel_index(np.argmin(rl + slope * (x_e - xl)), slope.shape)
         edge = float(slope[k])
         for guess in (None, cm.drift, cm.drift + 1.9e-6, cm.drift + 50e-6):
-            got = _support_slope(X, R, x_e, -1e-3, 1e-3, guess)
+            got = support_slope(X, R, x_e, -1e-3, 1e-3, guess)
             assert got == pytest.approx(edge, rel=0, abs=1e-12), (f, guess)

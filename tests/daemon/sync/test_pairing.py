@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from wristscan.calib import kinematics
-from wristscan.daemon.sync.clockmap import ClockConfig
-from wristscan.daemon.sync.pairing import DROP_REASONS, PairedBatch, Pairer, PairerConfig
+from wristscan.daemon.sync.batch import PairedBatch
+from wristscan.daemon.sync.clockconfig import ClockConfig
+from wristscan.daemon.sync.pairing import DROP_REASONS, Pairer, PairerConfig
 from wristscan.drivers.records import Profile, RobotState, TableState
 
 MS = 1_000_000
@@ -427,7 +428,7 @@ def test_drop_reasons_are_counted_from_zero(reason: str) -> None:
 
 
 def test_latency_window_keeps_the_latest_profiles_per_stage() -> None:
-    from wristscan.daemon.service.pipeline import LatencyWindow
+    from wristscan.daemon.service.instruments import LatencyWindow
 
     w = LatencyWindow(size=5)
     assert w.summary() == {}
@@ -446,7 +447,8 @@ def test_latency_window_keeps_the_latest_profiles_per_stage() -> None:
 
 
 def test_merge_joins_batches_in_order_up_to_the_profile_limit() -> None:
-    from wristscan.daemon.sync.pairing import PairedBatch, Pairer, PairerConfig
+    from wristscan.daemon.sync.batch import PairedBatch
+    from wristscan.daemon.sync.pairing import Pairer, PairerConfig
 
     def batch(first: int, sizes: list[int]) -> PairedBatch:
         p = len(sizes)

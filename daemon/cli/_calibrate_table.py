@@ -1,19 +1,50 @@
 """``wristscan calibrate table`` and ``wristscan calibrate latency``: the rotary-table axis and the
-sensor latency, measured with a tooling ball (procedures in :mod:`.calib_table` and
-:mod:`.calib_latency`). Both move the robot: they need ``[robot] motion_enabled`` and ``--yes``
-(or a yes at the prompt on a terminal). Exit codes as for every ``calibrate`` procedure: 0 done,
-1 aborted or failed (nothing written), 2 usage or configuration error (nothing moved)."""
+sensor latency, measured with a tooling ball (procedures in :mod:`wristscan.daemon.calibrate.table`
+and :mod:`wristscan.daemon.calibrate.latency`). Both move the robot: they need
+``[robot] motion_enabled`` and ``--yes`` (or a yes at the prompt on a terminal). Exit codes as
+for every ``calibrate`` procedure: 0 done, 1 aborted or failed (nothing written), 2 usage or
+configuration error (nothing moved).
+
+The ``calibrate`` group (:mod:`.calibrate`) adds these commands after ``sensor``; the options
+every calibration procedure takes are declared here.
+"""
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
 from pathlib import Path
-from typing import TypeVar
+from typing import TYPE_CHECKING, Annotated, TypeVar
 
 import typer
 
+from wristscan.daemon.cli._common import (
+    EXIT_USAGE,
+    QuietOpt,
+    YesOpt,
+    check_out_folder,
+    confirm_motion,
+    fail,
+    load_config_or_exit,
+    progress_printer,
+    report_path,
+)
+
+if TYPE_CHECKING:
+    from wristscan.daemon.calibrate.latency import LatencyResult
+    from wristscan.daemon.calibrate.table import TableResult
+
+__all__ = ["ConfigOpt", "latency", "table"]
+
 T = TypeVar("T")
+
+ConfigOpt = Annotated[Path, typer.Option("--config", "-c", help="Configuration file of the cell.")]
+"""``--config`` of the calibration procedures."""
+_BallRadiusOpt = Annotated[float, typer.Option("--ball-radius-mm", min=1.0)]
+_StandoffOpt = Annotated[
+    float,
+    typer.Option("--standoff-mm", min=1.0, help="Sensor origin to ball centre along sensor Z."),
+]
 
 
 def _vec3(text: str | None, option: str) -> tuple[float, float, float] | None:
@@ -28,32 +59,6 @@ def _vec3(text: str | None, option: str) -> tuple[float, float, float] | None:
     return (vals[0], vals[1], vals[2])
 
 
-def _progress(quiet: bool) -> Callable[[int, int, str], None]:
-    """One stage line per step on stderr."""
-
-    def line(done: int, total: int, text: str) -> None:
-        if not quiet:
-            typer.echo(f"[{done}/{total}] {text}", err=True)
-
-    return line
-
-
-def _report_path(target: Path, report: Path | None) -> Path:
-    from wristscan.daemon.cli.calibrate import EXIT_USAGE, fail
-
-    rep = report if report is not None else target.with_name(target.stem + "-report.html")
-    if rep.suffix.lower() not in (".html", ".htm", ".md"):
-        fail("--report: the name must end in .html or .md", EXIT_USAGE)
-    return rep
-
-
-def _check_folder(target: Path, option: str) -> None:
-    from wristscan.daemon.cli.calibrate import EXIT_USAGE, fail
-
-    if not target.parent.is_dir():
-        fail(f"{option}: folder {target.parent} does not exist", EXIT_USAGE)
-
-
 def _run(fn: Callable[[], T]) -> T:
     """Run a procedure; its errors become one line on stderr and the exit code."""
     from wristscan.daemon.calibrate.table import (
@@ -61,7 +66,6 @@ def _run(fn: Callable[[], T]) -> T:
         ProcedureAborted,
         ProcedureError,
     )
-    from wristscan.daemon.cli.calibrate import EXIT_USAGE, fail
     from wristscan.drivers.base import DriverError
 
     try:
@@ -79,67 +83,76 @@ def _run(fn: Callable[[], T]) -> T:
 
 
 def _write(fn: Callable[[], T]) -> T:
-    from wristscan.daemon.cli.calibrate import fail
-
     try:
         return fn()
     except (OSError, ValueError) as exc:
         fail(f"cannot write the result: {exc}")
 
 
-def register(app: typer.Typer) -> None:
-    from wristscan.daemon.cli.calibrate import calibrate_app
+# ------------------------------------------------------------------------------ calibrate table
 
-    calibrate_app.command("table")(table)
-    calibrate_app.command("latency")(latency)
-
-
-def table(
-    config: Path = typer.Option(..., "--config", "-c", help="Configuration file of the cell."),
-    yes: bool = typer.Option(
-        False, "--yes", "-y", help="Confirm that the robot may move (needed without a terminal)."
-    ),
-    angles: int = typer.Option(
-        8, "--angles", min=6, max=72, help="Table angles of the plan (>= 6), evenly spread."
-    ),
-    span_deg: float | None = typer.Option(
-        None,
+_SpanOpt = Annotated[
+    float | None,
+    typer.Option(
         "--span-deg",
         min=30.0,
         max=360.0,
         help="Angle range the plan covers from the current angle (default: a full turn, "
         "360 (n - 1) / n).",
     ),
-    ball: str | None = typer.Option(
-        None,
+]
+_TableBallOpt = Annotated[
+    str | None,
+    typer.Option(
         "--ball-m",
         help="Approximate ball centre X,Y,Z (m, base frame) at the current table angle. "
         "Default: --standoff-mm in front of the sensor as it stands.",
     ),
-    ball_radius_mm: float = typer.Option(12.7, "--ball-radius-mm", min=1.0),
-    standoff_mm: float = typer.Option(
-        100.0, "--standoff-mm", min=1.0, help="Sensor origin to ball centre along sensor Z."
-    ),
-    speed_mm_s: float = typer.Option(20.0, "--speed-mm-s", min=1.0, help="Sweep speed."),
-    ball_height_mm: float = typer.Option(
-        0.0,
+]
+_BallHeightOpt = Annotated[
+    float,
+    typer.Option(
         "--ball-height-mm",
         help="Ball centre above the table top: puts the table frame's origin on the top "
         "(0: in the plane of the ball centre).",
     ),
-    out: Path | None = typer.Option(
-        None,
+]
+_TableOutOpt = Annotated[
+    Path | None,
+    typer.Option(
         "--out",
         "-o",
         help="Calibration file (default: calibration.table_file, else ./table.json).",
     ),
-    report: Path | None = typer.Option(
-        None,
+]
+_TableReportOpt = Annotated[
+    Path | None,
+    typer.Option(
         "--report",
         help="Report: .html, or .md with a folder of PNG figures. Default: beside the "
         "calibration file, .html.",
     ),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress lines."),
+]
+
+
+def table(
+    config: ConfigOpt,
+    yes: YesOpt = False,
+    angles: Annotated[
+        int,
+        typer.Option(
+            "--angles", min=6, max=72, help="Table angles of the plan (>= 6), evenly spread."
+        ),
+    ] = 8,
+    span_deg: _SpanOpt = None,
+    ball: _TableBallOpt = None,
+    ball_radius_mm: _BallRadiusOpt = 12.7,
+    standoff_mm: _StandoffOpt = 100.0,
+    speed_mm_s: Annotated[float, typer.Option("--speed-mm-s", min=1.0, help="Sweep speed.")] = 20.0,
+    ball_height_mm: _BallHeightOpt = 0.0,
+    out: _TableOutOpt = None,
+    report: _TableReportOpt = None,
+    quiet: QuietOpt = False,
 ) -> None:
     """Calibrate the rotary-table axis and encoder offset with a tooling ball on the table.
 
@@ -154,13 +167,12 @@ def table(
         table_calibration,
         table_report,
     )
-    from wristscan.daemon.cli.calibrate import EXIT_USAGE, confirm_motion, fail, load_config_or_exit
     from wristscan.daemon.io.calibfile import write_calibration
 
     cfg = load_config_or_exit(config)
     target = out or cfg.calibration.table_file or Path("table.json")
-    _check_folder(target, "--out")
-    rep = _report_path(target, report)
+    check_out_folder(target, "--out")
+    rep = report_path(target, report)
     try:
         options = TableOptions(
             n_angles=angles,
@@ -176,11 +188,16 @@ def table(
     if not cfg.table_enabled:
         fail(f"{cfg.source}: no enabled [table] section: nothing to calibrate", EXIT_USAGE)
     confirm_motion(cfg, yes, "calibrate table")
-    result = _run(lambda: calibrate_table(cfg, options, confirmed=True, progress=_progress(quiet)))
+    progress = progress_printer(quiet)
+    result = _run(lambda: calibrate_table(cfg, options, confirmed=True, progress=progress))
     path = _write(lambda: write_calibration(target, table_calibration(result, cfg)))
     rep_path = _write(
         lambda: table_report(result, f"cell {cfg.cell.name}, configuration {cfg.source}").write(rep)
     )
+    _print_table(result, path, rep_path)
+
+
+def _print_table(result: TableResult, path: Path, rep_path: Path) -> None:
     a = result.axis
     s = a.sigma()
     typer.echo(
@@ -201,42 +218,55 @@ def table(
     typer.echo(f"report           {rep_path}")
 
 
-def latency(
-    config: Path = typer.Option(..., "--config", "-c", help="Configuration file of the cell."),
-    yes: bool = typer.Option(
-        False, "--yes", "-y", help="Confirm that the robot may move (needed without a terminal)."
-    ),
-    speeds: str = typer.Option(
-        "25,50,100",
+# ------------------------------------------------------------------------------ calibrate latency
+
+_SpeedsOpt = Annotated[
+    str,
+    typer.Option(
         "--speeds-mm-s",
         "--speeds",
         help="Sweep speeds in mm/s, comma separated (capped by robot.max_speed_m_s).",
     ),
-    repeats: int = typer.Option(
-        1, "--repeats", min=1, max=20, help="Forward + backward sweep pairs per speed."
-    ),
-    ball: str | None = typer.Option(
-        None,
+]
+_LatencyBallOpt = Annotated[
+    str | None,
+    typer.Option(
         "--ball-m",
         help="Approximate ball centre X,Y,Z (m, base frame). Default: --standoff-mm in front "
         "of the sensor as it stands.",
     ),
-    ball_radius_mm: float = typer.Option(12.7, "--ball-radius-mm", min=1.0),
-    standoff_mm: float = typer.Option(
-        100.0, "--standoff-mm", min=1.0, help="Sensor origin to ball centre along sensor Z."
-    ),
-    out: Path = typer.Option(
-        Path("latency.json"),
+]
+_LatencyOutOpt = Annotated[
+    Path,
+    typer.Option(
         "--out",
         "-o",
         help="JSON result file (the configuration is never rewritten).",
     ),
-    report: Path | None = typer.Option(
-        None,
+]
+_LatencyReportOpt = Annotated[
+    Path | None,
+    typer.Option(
         "--report",
         help="Report: .html, or .md with a folder of PNG figures. Default: beside --out, .html.",
     ),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress lines."),
+]
+
+
+def latency(
+    config: ConfigOpt,
+    yes: YesOpt = False,
+    speeds: _SpeedsOpt = "25,50,100",
+    repeats: Annotated[
+        int,
+        typer.Option("--repeats", min=1, max=20, help="Forward + backward sweep pairs per speed."),
+    ] = 1,
+    ball: _LatencyBallOpt = None,
+    ball_radius_mm: _BallRadiusOpt = 12.7,
+    standoff_mm: _StandoffOpt = 100.0,
+    out: _LatencyOutOpt = Path("latency.json"),
+    report: _LatencyReportOpt = None,
+    quiet: QuietOpt = False,
 ) -> None:
     """Measure the sensor latency: sweeps over a fixed ball, both ways, at three speeds.
 
@@ -250,20 +280,11 @@ def latency(
         latency_report,
         write_latency_result,
     )
-    from wristscan.daemon.cli.calibrate import EXIT_USAGE, confirm_motion, fail, load_config_or_exit
 
-    try:
-        values = tuple(float(v) * 1e-3 for v in speeds.split(","))
-        if not all(math.isfinite(v) and v > 0 for v in values):
-            raise ValueError
-    except ValueError:
-        raise typer.BadParameter(
-            f"expected speeds in mm/s such as 25,50,100, got {speeds!r}",
-            param_hint="--speeds-mm-s",
-        ) from None
+    values = _speeds_m_s(speeds)
     cfg = load_config_or_exit(config)
-    _check_folder(out, "--out")
-    rep = _report_path(out, report)
+    check_out_folder(out, "--out")
+    rep = report_path(out, report)
     try:
         options = LatencyOptions(
             speeds_m_s=values,
@@ -275,15 +296,32 @@ def latency(
     except ValueError as exc:
         fail(str(exc), EXIT_USAGE)
     confirm_motion(cfg, yes, "calibrate latency")
-    result = _run(
-        lambda: calibrate_latency(cfg, options, confirmed=True, progress=_progress(quiet))
-    )
+    progress = progress_printer(quiet)
+    result = _run(lambda: calibrate_latency(cfg, options, confirmed=True, progress=progress))
     path = _write(lambda: write_latency_result(out, result))
     rep_path = _write(
         lambda: latency_report(result, f"cell {cfg.cell.name}, configuration {cfg.source}").write(
             rep
         )
     )
+    _print_latency(result, path, rep_path)
+
+
+def _speeds_m_s(speeds: str) -> tuple[float, ...]:
+    """``--speeds-mm-s`` in m/s; a usage error (exit 2) unless positive finite numbers."""
+    try:
+        values = tuple(float(v) * 1e-3 for v in speeds.split(","))
+        if not all(math.isfinite(v) and v > 0 for v in values):
+            raise ValueError
+    except ValueError:
+        raise typer.BadParameter(
+            f"expected speeds in mm/s such as 25,50,100, got {speeds!r}",
+            param_hint="--speeds-mm-s",
+        ) from None
+    return values
+
+
+def _print_latency(result: LatencyResult, path: Path, rep_path: Path) -> None:
     e = result.estimate
     typer.echo(
         f"sensor latency {result.latency_s * 1e3:.4f} +- {result.std_s * 1e3:.4f} ms "

@@ -1,0 +1,154 @@
+"""The sections about how the daemon runs: ``[sync]`` (pairing profiles with robot states),
+``[pipeline]`` (batching and what is published), ``[zenoh]`` (the network) and
+``[calibration]`` (the calibration files in force).
+
+Relative paths (calibration files, an extra zenoh config) are resolved against the folder of the
+config file, passed as ``base_dir`` in the validation context.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import Field, ValidationInfo, field_validator, model_validator
+
+from wristscan.daemon.config.values import (
+    Bool,
+    Float,
+    Int,
+    Str,
+    StrictModel,
+    cross_field,
+    render_value,
+)
+
+__all__ = ["CalibrationConfig", "PipelineConfig", "SyncConfig", "ZenohConfig"]
+
+_ENDPOINT_NET = re.compile(
+    r"^(tcp|udp|tls|quic|ws)/(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9._-]+):(\d{1,5})(#\S*)?$"
+)
+_ENDPOINT_OTHER = re.compile(r"^(unixsock-stream|serial)/\S+$")
+
+
+def _resolve_path(value: str | None, info: ValidationInfo) -> Path | None:
+    if value is None:
+        return None
+    path = Path(os.path.expanduser(value))
+    base = (info.context or {}).get("base_dir")
+    if not path.is_absolute() and base is not None:
+        path = Path(base) / path
+    return Path(os.path.normpath(path))
+
+
+class SyncConfig(StrictModel):
+    interpolation: Literal["joint", "tcp"] = "joint"
+    """``joint``: interpolate joint positions then forward kinematics; ``tcp``: the TCP pose."""
+    pairing: Literal["clock", "encoder"] = "clock"
+    """Pair profiles to robot states by time (clock) or by the sensor's encoder input."""
+    max_gap_s: Annotated[Float, Field(gt=0, le=1.0)] = 0.020
+    """Largest spacing of the two robot samples a profile is interpolated between."""
+    table_max_gap_s: Annotated[Float, Field(gt=0, le=10.0)] = 0.200
+    max_wait_s: Annotated[Float, Field(gt=0, le=10.0)] = 0.200
+    """How long a profile may wait for the robot states after it before it is dropped."""
+    clock_window_s: Annotated[Float, Field(gt=0, le=3600)] = 30.0
+    """Sliding window of the device-to-host clock fit."""
+    clock_max_uncertainty_s: Annotated[Float, Field(gt=0, le=0.1)] = 200e-6
+    """A clock mapping is trusted while its uncertainty stays below this."""
+    robot_latency_s: Annotated[Float, Field(ge=0, le=1.0)] = 0.0
+    table_latency_s: Annotated[Float, Field(ge=0, le=1.0)] = 0.0
+    encoder_bits: Annotated[Int, Field(ge=8, le=64)] | None = None
+    """Width of the sensor's encoder counter (None: does not wrap)."""
+
+
+class PipelineConfig(StrictModel):
+    batch_s: Annotated[Float, Field(gt=0, le=1.0)] = 0.010
+    """Profiles are aligned and published in batches of this length."""
+    profile_queue: Annotated[Int, Field(ge=16, le=1_000_000)] = 4096
+    """Profiles waiting for pairing at most (the oldest are dropped beyond)."""
+    batch_queue: Annotated[Int, Field(ge=1, le=1024)] = 8
+    """Aligned batches waiting for publication at most."""
+    frame: Literal["base", "table", "part"] = "base"
+    """Frame of the published points; ``table`` and ``part`` need a ``[table]``."""
+    publish_raw_profiles: Bool = False
+    publish_robot_state: Bool = False
+    publish_intensity: Bool = False
+    publish_profile_index: Bool = False
+
+
+class ZenohConfig(StrictModel):
+    mode: Literal["peer", "client"] = "peer"
+    connect: list[Str] = Field(default_factory=list)
+    """Endpoints to connect to, e.g. ``tcp/192.168.1.10:7447``."""
+    listen: list[Str] = Field(default_factory=list)
+    multicast_scouting: Bool = False
+    """Off by default: on a cell network the endpoints are known and scouting crosses cells."""
+    prefix: Str = ""
+    """Key prefix (default ``wristscan/<cell.name>``)."""
+    congestion_control: Literal["drop", "block"] = "drop"
+    """``drop``: a slow network loses batches (seq gaps) rather than stalling acquisition."""
+    status_period_s: Annotated[Float, Field(gt=0, le=3600)] = 1.0
+    config_file: Str | None = None
+    """An extra zenoh JSON5 config merged under these settings (TLS, authentication, ACL)."""
+
+    @field_validator("connect", "listen")
+    @classmethod
+    def _endpoints(cls, v: list[str]) -> list[str]:
+        for i, ep in enumerate(v):
+            m = _ENDPOINT_NET.match(ep)
+            if m is not None:
+                if not 1 <= int(m.group(3)) <= 65535:
+                    raise ValueError(f"item {i}: port out of range in {ep!r}")
+            elif not _ENDPOINT_OTHER.match(ep):
+                raise ValueError(
+                    f"item {i}: not a zenoh endpoint {ep!r} (expected e.g. 'tcp/127.0.0.1:7447')"
+                )
+        return v
+
+    @field_validator("prefix")
+    @classmethod
+    def _prefix(cls, v: str) -> str:
+        chunks = v.split("/")
+        if not v or any(not c for c in chunks) or re.search(r"[*$?#\s]", v):
+            raise ValueError(
+                "not a plain zenoh key: non-empty chunks separated by '/', no wildcards "
+                "('*', '$'), '?', '#' or spaces"
+            )
+        return v
+
+    @field_validator("config_file")
+    @classmethod
+    def _config_file(cls, v: str | None, info: ValidationInfo) -> str | None:
+        path = _resolve_path(v, info)
+        return None if path is None else str(path)
+
+    @model_validator(mode="after")
+    def _client_needs_router(self) -> ZenohConfig:
+        if self.mode == "client" and not self.connect:
+            raise cross_field(
+                "connect", 'mode = "client" needs at least one endpoint to connect to'
+            )
+        return self
+
+
+class CalibrationConfig(StrictModel):
+    file: Path | None = None
+    """The sensor2flange calibration (JSON, see :mod:`wristscan.daemon.io.calibfile`); relative
+    paths are resolved against the config file's folder. None: no calibration yet."""
+    table_file: Path | None = None
+    """The rotary-table calibration (``kind = "table"``)."""
+    check_identity: Bool = True
+    """Refuse a calibration made for another robot or sensor."""
+
+    @field_validator("file", "table_file", mode="before")
+    @classmethod
+    def _paths(cls, v: Any, info: ValidationInfo) -> Any:
+        if isinstance(v, str):
+            if not v:
+                raise ValueError("must not be empty (leave the key out for none)")
+            return _resolve_path(v, info)
+        if v is None or isinstance(v, Path):
+            return v
+        raise ValueError(f"must be a path string (got {render_value(v)})")

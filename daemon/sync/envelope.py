@@ -1,0 +1,182 @@
+"""The lower envelope of one-way arrivals: the fitted line, the search of its slope and the fit
+of a window (offset, drift and their uncertainties).
+
+The clock fit (:mod:`.clockmap`) takes, among the lines lying below every point of a window,
+the one highest at an evaluation instant ``x_e``; that is the lower-convex-hull edge spanning
+``x_e``, found here by bisection on the slope (the objective is concave in the slope), with a
+warm start from the previous fit and an early stop once the chord of the two active points is a
+supporting line. :class:`~.clockmap.ClockMapper` keeps the window and the epochs; this module
+is the arithmetic on one window.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from wristscan.daemon.sync.clockconfig import ClockConfig
+
+__all__ = ["EnvelopeLine", "fit_window", "support_slope"]
+
+FloatArray = NDArray[np.float64]
+
+# Slope bisection: 40 halvings of a +-1e-3 interval resolve the drift to ~2e-15, then the exact
+# hull edge is taken from the two active points.
+_BISECT_ITERATIONS = 40
+_PRUNE_AFTER = 10
+_CHECK_EVERY = 3
+# A warm start brackets the previous slope by this much (2 ppm: successive fits of a window
+# differ by far less; the edges at the quartiles by about that).
+_WARM_HALF_WIDTH = 2e-6
+
+
+@dataclass(frozen=True, slots=True)
+class EnvelopeLine:
+    """``host = y_ref + (x - x_ref) + a + d * (x - x_ref)``; ``x_e`` relative to ``x_ref``."""
+
+    x_ref: int
+    y_ref: int
+    a: float
+    d: float
+    x_e: float
+    u0: float
+    u_slope: float
+    locked: bool
+
+    def rel(self, dx: float) -> float:
+        return self.a + self.d * dx
+
+    def uncertainty(self, dx: FloatArray) -> FloatArray:
+        out: FloatArray = np.sqrt(self.u0**2 + (self.u_slope * (dx - self.x_e)) ** 2)
+        return out
+
+    def uncertainty1(self, dx: float) -> float:
+        return math.hypot(self.u0, self.u_slope * (dx - self.x_e))
+
+
+def support_slope(
+    X: FloatArray, R: FloatArray, x_e: float, lo: float, hi: float, guess: float | None = None
+) -> float:
+    """Slope of the highest line at ``x_e`` lying below all points ``(X, R)``.
+
+    ``f(d) = min_i R_i + d (x_e - X_i)`` is concave; its supergradient at ``d`` is ``x_e - X_i*``
+    of the active point, so bisection on its sign finds the maximiser: the lower-hull edge
+    spanning ``x_e``. Slopes outside ``[lo, hi]`` are clipped to the range. ``guess``: a slope
+    near the answer (the previous fit's); when ``guess +- _WARM_HALF_WIDTH`` brackets the
+    answer, the search starts there with the points pruned at once (same edge, a third of the
+    passes over the whole window).
+    """
+    span = float(X.max() - X.min())
+    pruned = False
+    if guess is not None:
+        a, b = max(lo, guess - _WARM_HALF_WIDTH), min(hi, guess + _WARM_HALF_WIDTH)
+        Ga = R - a * X
+        ia = int(Ga.argmin())
+        if a < b and X[ia] <= x_e and X[int((R - b * X).argmin())] > x_e:
+            lo, hi = a, b
+            keep = Ga - Ga[ia] <= (hi - lo) * span + 1.0  # as the pruning below, at slope lo
+            X, R = X[keep], R[keep]
+            pruned = True
+    il = ir = -1  # active points at lo and hi once pruned
+    for it in range(_BISECT_ITERATIONS):
+        d = 0.5 * (lo + hi)
+        G = R - d * X
+        i = int(G.argmin())
+        if X[i] > x_e:
+            hi, ir = d, i
+        else:
+            lo, il = d, i
+        if not pruned and it == _PRUNE_AFTER:
+            # Only points within (hi - lo) * span of the envelope at slope d (an end of the new
+            # interval) can be active anywhere in [lo, hi]: drop the rest, the remaining
+            # halvings get cheap.
+            keep = G - G[i] <= (hi - lo) * span + 1.0
+            X, R = X[keep], R[keep]
+            il = ir = -1
+            pruned = True
+        elif pruned and il >= 0 and ir >= 0 and it % _CHECK_EVERY == 0:
+            # Done once the chord of the two active points is a supporting line: it touches the
+            # envelope on both sides of x_e, so it is the edge the halvings converge to (they
+            # take ~40 steps; the edge is usually isolated after ~15).
+            s = float((R[ir] - R[il]) / (X[ir] - X[il]))
+            if lo <= s <= hi and float((R - s * X).min()) >= float(R[il] - s * X[il]) - 1.0:
+                return s
+    # The two active points of the final interval give the edge exactly.
+    il = int((R - lo * X).argmin())
+    ir = int((R - hi * X).argmin())
+    if X[ir] > X[il]:
+        exact = float((R[ir] - R[il]) / (X[ir] - X[il]))
+        if lo - 1e-12 <= exact <= hi + 1e-12:
+            return exact
+    return 0.5 * (lo + hi)
+
+
+def fit_window(
+    X: FloatArray,
+    R: FloatArray,
+    span: float,
+    cfg: ClockConfig,
+    line: EnvelopeLine | None,
+    prior: tuple[float, float, float] | None,
+    u_hist: deque[tuple[float, float]],
+) -> tuple[float, float, float, float, float]:
+    """Offset and drift from the window's points ``(X, R)``: ``(d, a, x_e, u0, u_slope)``.
+
+    ``line`` is the previous fit (its slope starts the search), ``prior`` the drift known before
+    these data ``(drift, its uncertainty, span)``, and ``u_hist`` the recent split differences,
+    to which this fit's is appended (the uncertainty is their windowed RMS).
+    """
+    lo, hi = -cfg.max_drift, cfg.max_drift
+
+    def clipped(v: float) -> bool:  # a slope at the end of the range: undetermined
+        return abs(v) >= cfg.max_drift * (1.0 - 1e-9)
+
+    f = cfg.eval_fraction
+    x0 = float(X.min())
+    x_e = x0 + f * span
+    d = support_slope(X, R, x_e, lo, hi, None if line is None else line.d)
+    # Uncertainty: the same estimator on the even and on the odd buckets gives two
+    # independent half-data estimates; half their difference is of the order of the full
+    # estimate's error whatever the delay distribution. Windowed RMS: one split is a noisy
+    # scale; old (early, poor) fits drop out.
+    d1 = support_slope(X[0::2], R[0::2], x_e, lo, hi, d)
+    d2 = support_slope(X[1::2], R[1::2], x_e, lo, hi, d)
+    v1 = float((R[0::2] - d1 * X[0::2]).min()) + d1 * x_e
+    v2 = float((R[1::2] - d2 * X[1::2]).min()) + d2 * x_e
+    dv = 0.5 * (v1 - v2)
+    dd = cfg.max_drift if clipped(d1) or clipped(d2) else 0.5 * (d1 - d2)
+    u_hist.append((dv * dv, dd * dd))
+    u0 = math.sqrt(sum(h[0] for h in u_hist) / len(u_hist))
+    u_slope = math.sqrt(sum(h[1] for h in u_hist) / len(u_hist))
+    # What was known before these data: the drift of the previous epoch or fit (same
+    # oscillator), else 0 with the typical drift as its scale.
+    if prior is not None:
+        pd, pu = prior[0], prior[1]
+    else:
+        pd, pu = 0.0, cfg.typical_drift
+    pu = max(pu, 0.01 * cfg.typical_drift)
+    # The lower envelope is a straight line only where the delay floor is reached. When
+    # every arrival of a stretch reaching one end of the window is late (sustained load
+    # longer than the rest of the window), the hull edge spanning x_e tilts towards it.
+    # The edges spanning the quartiles then disagree by more than the noise: the data do
+    # not determine the drift, so it stays where it was (a clock's drift changes slowly).
+    xq = (x0 + max(f - 0.25, 0.0) * span, x0 + min(f + 0.25, 1.0) * span)
+    dq = (support_slope(X, R, xq[0], lo, hi, d), support_slope(X, R, xq[1], lo, hi, d))
+    if abs(dq[0] - dq[1]) > max(6.0 * u_slope, 0.01 * cfg.typical_drift):
+        ref = line.d if line is not None else pd
+        G = R - ref * X
+        i0 = int(np.argmin(G))
+        u_ref = line.u_slope if line is not None else pu
+        return ref, float(G[i0]), float(X[i0]), u0, u_ref
+    # Combine with the prior (inverse-variance weights): a slope from a short or noisy
+    # stretch then counts for little, and one at the end of the search range for nothing.
+    us = cfg.max_drift if clipped(d) else u_slope
+    w = pu * pu / (us * us + pu * pu)
+    d = pd + w * (d - pd)
+    u_slope = us * pu / math.sqrt(us * us + pu * pu)
+    a = float((R - d * X).min())
+    return d, a, x_e, u0, u_slope
