@@ -4,26 +4,36 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 from wristscan.calib import kinematics
 from wristscan.daemon.config import Config, PluginSensorConfig
 from wristscan.daemon.sync.clockconfig import ClockConfig
 from wristscan.daemon.sync.pairing import PairerConfig
 from wristscan.drivers import registry
-from wristscan.drivers.base import Device, DriverError
-from wristscan.drivers.records import Profile, RobotState, TableState
+from wristscan.drivers.base import (
+    Device,
+    DriverError,
+    DriverInitError,
+    ProfileSensor,
+    Robot,
+    RotaryTable,
+)
 
 __all__ = ["Devices", "make_devices", "pairer_config", "robot_model"]
 
 log = logging.getLogger(__name__)
 
+T = TypeVar("T", bound=Device[Any])
+
 
 @dataclass
 class Devices:
-    sensor: Device[Profile]
-    robot: Device[RobotState]
-    table: Device[TableState] | None
+    """The cell's devices, typed by the contracts the procedures and the pipeline rely on."""
+
+    sensor: ProfileSensor
+    robot: Robot
+    table: RotaryTable | None
 
     def all(self) -> list[Device[Any]]:
         return [d for d in (self.sensor, self.robot, self.table) if d is not None]
@@ -48,6 +58,18 @@ class Devices:
                 log.warning("closing %s: %s", d.kind, exc)
 
 
+def _driver_class(kind: registry.Kind, name: str, contract: type[T]) -> type[T]:
+    """The driver class ``name`` of ``kind``, checked to implement ``contract`` (a plug-in that
+    does not would fail later, in the middle of a procedure)."""
+    cls = registry.load(kind, name)
+    if not issubclass(cls, contract):
+        raise DriverInitError(
+            f"{kind[:-1]} driver {name!r} ({cls.__module__}.{cls.__qualname__}) is not a "
+            f"{contract.__module__}.{contract.__qualname__}"
+        )
+    return cls
+
+
 def _sensor_kwargs(cfg: Config) -> dict[str, Any]:
     s = cfg.sensor
     opts = s.options if isinstance(s, PluginSensorConfig) else s.options.model_dump()
@@ -57,10 +79,10 @@ def _sensor_kwargs(cfg: Config) -> dict[str, Any]:
 def make_devices(cfg: Config) -> Devices:
     """Instantiate (not open) the drivers named in ``cfg``."""
     # Constructors differ per driver; the config models name their keyword arguments.
-    sensor_cls: Any = registry.load("sensors", cfg.sensor.driver)
+    sensor_cls: Any = _driver_class("sensors", cfg.sensor.driver, ProfileSensor)
     sensor = sensor_cls(**_sensor_kwargs(cfg))
     r = cfg.robot
-    robot_cls: Any = registry.load("robots", r.driver)
+    robot_cls: Any = _driver_class("robots", r.driver, Robot)
     robot = robot_cls(
         host=r.host,
         frequency_hz=r.frequency_hz,
@@ -74,12 +96,12 @@ def make_devices(cfg: Config) -> Devices:
         model=r.model,
         read_kinematics=r.use_factory_kinematics,
         # Only the built-in UR driver has the choice; plug-ins get their own options.
-        **({"receive_backend": r.receive_backend} if r.driver == "ur-rtde" else {}),
+        **({"receive_backend": r.receive_backend} if r.driver == "ur-rtde" else r.options),
     )
-    table: Device[Any] | None = None
+    table: RotaryTable | None = None
     t = cfg.table
     if t is not None and t.enabled:
-        table_cls: Any = registry.load("tables", t.driver)
+        table_cls: Any = _driver_class("tables", t.driver, RotaryTable)
         if t.driver != "modbus":
             table = table_cls(**t.options)
         else:
@@ -112,9 +134,8 @@ def robot_model(cfg: Config, devices: Devices) -> str | kinematics.DHParams:
     """The kinematic model to pair with: the robot's factory calibration when the configuration
     asks for it and the driver read it at ``open()``, else the nominal model."""
     if cfg.robot.use_factory_kinematics:
-        read = getattr(devices.robot, "kinematic_model", None)
-        model = read() if callable(read) else None
-        if isinstance(model, kinematics.DHParams):
+        model = devices.robot.kinematic_model()
+        if model is not None:
             return model
     return cfg.robot.model
 

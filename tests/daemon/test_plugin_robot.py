@@ -17,8 +17,9 @@ from typer.testing import CliRunner
 
 from wristscan.daemon.cli.app import app
 from wristscan.daemon.config import load_config
+from wristscan.daemon.devices import make_devices
 from wristscan.daemon.scan.job import run_scan
-from wristscan.daemon.scan.plan import generate_plan
+from wristscan.daemon.scan.plan_generate import generate_plan
 from wristscan.daemon.simcell.cell import (
     dump_toml,
     free_sim_config,
@@ -27,6 +28,7 @@ from wristscan.daemon.simcell.cell import (
 )
 from wristscan.daemon.simcell.scenarios import table_ball_cell
 from wristscan.drivers import registry
+from wristscan.drivers.base import DriverInitError
 from wristscan.drivers.sim.cell import SimulatedCell
 from wristscan.drivers.sim.scene import demo_scene
 
@@ -45,6 +47,7 @@ def plugin(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[str]:
     )
     (info / "entry_points.txt").write_text(
         "[wristscan.robots]\nplugin-ur = wristscan_plugin_robot:PluginRobot\n"
+        "table-as-robot = wristscan.drivers.table_modbus:ModbusTable\n"
     )
     monkeypatch.syspath_prepend(str(site))
     monkeypatch.syspath_prepend(str(PLUGINS))
@@ -72,6 +75,12 @@ def test_the_plugin_is_found_through_its_entry_point(plugin: str) -> None:
     assert registry.load("robots", plugin).__name__ == "PluginRobot"
     r = CliRunner().invoke(app, ["drivers"])
     assert r.exit_code == 0 and plugin in r.output
+
+
+def test_a_driver_that_breaks_the_contract_is_refused_by_name(tmp_path: Path, plugin: str) -> None:
+    path, _ = _config(tmp_path, "table-as-robot")
+    with pytest.raises(DriverInitError, match=r"'table-as-robot' .* is not a .*base\.Robot"):
+        make_devices(load_config(path))
 
 
 @pytest.mark.slow

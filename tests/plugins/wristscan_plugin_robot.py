@@ -33,12 +33,13 @@ _MOVE_TIMEOUT_S = 120.0
 
 
 class PluginRobot(Robot):
-    """A UR robot over ur_rtde, in-process. ``frequency_hz``: RTDE output rate asked for."""
+    """A UR robot over ur_rtde, in-process. ``frequency_hz``: RTDE output rate asked for (None:
+    the controller's maximum)."""
 
     def __init__(
         self,
         host: str,
-        frequency_hz: float = 500.0,
+        frequency_hz: float | None = None,
         model: str = "UR5e",
         read_kinematics: bool = False,
         **limits: Any,
@@ -56,7 +57,9 @@ class PluginRobot(Robot):
     # --- Device ---------------------------------------------------------------------------
     def _open(self) -> None:
         try:
-            self._rx = rtde_receive.RTDEReceiveInterface(self.host, self.frequency_hz)
+            self._rx = rtde_receive.RTDEReceiveInterface(
+                self.host, -1.0 if self.frequency_hz is None else self.frequency_hz
+            )
             if self.motion_enabled:
                 self._ctl = rtde_control.RTDEControlInterface(self.host)
         except RuntimeError as exc:
