@@ -23,7 +23,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from wristscan.calib import kinematics, se3
-from wristscan.drivers.sim.scene import Box, Mount, Plane, Primitive, Scene, Vec3, _nearest_positive
+from wristscan.drivers.sim.primitives import Mount, Primitive, Vec3, nearest_positive
+from wristscan.drivers.sim.scene import Box, Plane, Scene
 
 __all__ = [
     "DomeBoss",
@@ -116,7 +117,7 @@ class DomeBoss(Primitive):
         t_out = np.minimum(np.minimum(t1c, t1z), t1b)
         hit = t_in <= t_out
         # Entering: the entry point; from inside: the exit point (two-sided surfaces).
-        return _nearest_positive(np.where(hit, t_in, inf), np.where(hit, t_out, inf))
+        return nearest_positive(np.where(hit, t_in, inf), np.where(hit, t_out, inf))
 
     def local_bounds(self) -> tuple[FloatArray, float]:
         return np.array([0.0, 0.0, 0.5 * self.height]), float(

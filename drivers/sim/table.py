@@ -126,19 +126,28 @@ def _join32(words: list[int], word_order: str) -> int:
 
 def _serve(config: TableSimConfig, ring_name: str | None, conn: Connection) -> None:
     """Child-process body: Modbus server plus the truth publisher, until the parent says stop."""
-    from pymodbus.constants import ExcCodes
-    from pymodbus.server import ModbusSerialServer, ModbusTcpServer
     from pymodbus.simulator import DataType, SimData, SimDevice
-
-    from wristscan.drivers.sim.ptypair import PtyPair
 
     motion = TableMotion(
         config.initial_angle_rad,
         math.radians(config.max_speed_deg_s),
         math.radians(config.accel_deg_s2),
     )
-    cpr = config.counts_per_rev
     ring = TruthRing.attach(ring_name) if ring_name else None
+    device = SimDevice(
+        id=config.device_id,
+        simdata=[SimData(0, count=_N_REGS, values=0, datatype=DataType.REGISTERS)],
+        action=_register_action(config, motion),
+    )
+    logging.getLogger("pymodbus").setLevel(logging.ERROR)
+    asyncio.run(_run(config, device, motion, ring, conn))
+
+
+def _register_action(config: TableSimConfig, motion: TableMotion) -> Callable[..., Any]:
+    """The device's register hook: the encoder and status on every access, commands on write."""
+    from pymodbus.constants import ExcCodes
+
+    cpr = config.counts_per_rev
     ahead_s = config.motion_lookahead_s
 
     def count_now(t: float) -> int:
@@ -181,51 +190,57 @@ def _serve(config: TableSimConfig, ring_name: str | None, conn: Connection) -> N
         )
         return None
 
-    device = SimDevice(
-        id=config.device_id,
-        simdata=[SimData(0, count=_N_REGS, values=0, datatype=DataType.REGISTERS)],
-        action=action,
-    )
+    return action
 
-    async def main() -> None:
-        pty: PtyPair | None = None
-        server: ModbusTcpServer | ModbusSerialServer
-        if config.transport == "tcp":
-            server = ModbusTcpServer(device, address=(config.host, config.port))
-        else:
-            pty = PtyPair()
-            server = ModbusSerialServer(device, port=pty.paths[0], baudrate=config.baudrate)
-        await server.serve_forever(background=True)
-        if config.transport == "tcp":
-            transport: Any = server.transport
-            port = transport.sockets[0].getsockname()[1]
-            conn.send(("ready", {"host": config.host, "port": port}))
-        else:
-            assert pty is not None
-            conn.send(("ready", {"port_path": pty.paths[1]}))
-        period = 1.0 / config.truth_rate_hz
-        loop = asyncio.get_running_loop()
-        try:
-            while True:
-                if conn.poll():
-                    msg = conn.recv()
-                    if msg[0] == "stop":
-                        break
-                    if msg[0] == "angle":
-                        conn.send(("angle", motion.angle(time.monotonic())))
-                if ring is not None:
-                    t_ns = time.monotonic_ns() + round(ahead_s * 1e9)
-                    ring.append(t_ns, [motion.angle(t_ns * 1e-9)])
-                await asyncio.sleep(period - (loop.time() % period))
-        finally:
-            await server.shutdown()
-            if pty is not None:
-                pty.close()
+
+async def _run(
+    config: TableSimConfig,
+    device: Any,
+    motion: TableMotion,
+    ring: TruthRing | None,
+    conn: Connection,
+) -> None:
+    """Serve ``device`` and publish the true angle until the parent says stop."""
+    from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+
+    from wristscan.drivers.sim.ptypair import PtyPair
+
+    ahead_s = config.motion_lookahead_s
+    pty: PtyPair | None = None
+    server: ModbusTcpServer | ModbusSerialServer
+    if config.transport == "tcp":
+        server = ModbusTcpServer(device, address=(config.host, config.port))
+    else:
+        pty = PtyPair()
+        server = ModbusSerialServer(device, port=pty.paths[0], baudrate=config.baudrate)
+    await server.serve_forever(background=True)
+    if config.transport == "tcp":
+        transport: Any = server.transport
+        port = transport.sockets[0].getsockname()[1]
+        conn.send(("ready", {"host": config.host, "port": port}))
+    else:
+        assert pty is not None
+        conn.send(("ready", {"port_path": pty.paths[1]}))
+    period = 1.0 / config.truth_rate_hz
+    loop = asyncio.get_running_loop()
+    try:
+        while True:
+            if conn.poll():
+                msg = conn.recv()
+                if msg[0] == "stop":
+                    break
+                if msg[0] == "angle":
+                    conn.send(("angle", motion.angle(time.monotonic())))
             if ring is not None:
-                ring.close()
-
-    logging.getLogger("pymodbus").setLevel(logging.ERROR)
-    asyncio.run(main())
+                t_ns = time.monotonic_ns() + round(ahead_s * 1e9)
+                ring.append(t_ns, [motion.angle(t_ns * 1e-9)])
+            await asyncio.sleep(period - (loop.time() % period))
+    finally:
+        await server.shutdown()
+        if pty is not None:
+            pty.close()
+        if ring is not None:
+            ring.close()
 
 
 class SimulatedTable(SimProcess):

@@ -72,8 +72,14 @@ def spawn_child(
     ctx = mp.get_context("spawn")
     parent_conn, child_conn = ctx.Pipe(duplex=True)
     proc = ctx.Process(target=target, args=(*args, child_conn), name=name, daemon=True)
-    proc.start()
-    child_conn.close()
+    try:
+        proc.start()
+    except BaseException:
+        # Nothing started: the caller has no handle to stop, so nothing may be left open.
+        parent_conn.close()
+        raise
+    finally:
+        child_conn.close()
     return proc, parent_conn
 
 

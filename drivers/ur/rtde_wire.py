@@ -1,5 +1,6 @@
-"""RTDE wire format, shared by the receive client (:mod:`.rtde_receive`) and the simulated
-controller (:mod:`.sim.ur_controller`): packet framing, the variable type table, recipes.
+"""RTDE wire format, shared by the receive client (:mod:`wristscan.drivers.ur.receive`) and the
+simulated controller (:mod:`wristscan.drivers.sim.ur.rtde_server`): packet framing, the variable
+type table, recipes.
 
 Packet: ``uint16 size`` (including the 3-byte header), ``uint8 type``, payload; big-endian
 (PROTOCOLS.md, "UR RTDE"). The name -> type table lists every variable a UR controller knows, as

@@ -59,83 +59,97 @@ class DashboardTarget(Protocol):
     def stop_program(self) -> None: ...
 
 
+_FIXED_REPLIES = {
+    "is in remote control": "true",
+    "close safety popup": "closing safety popup",
+    "close popup": "closing popup",
+    "get operational mode": "NONE",
+    "clear operational mode": "No longer controlling the operational mode. ",
+    "restart safety": "Restarting safety",
+}
+"""Commands answered the same whatever the controller's state."""
+_CLOSING_REPLIES = {"shutdown": "Shutting down", "quit": "Disconnected"}
+"""Commands after whose reply the server closes the connection."""
+_PREFIX_REPLIES = (("popup ", "showing popup"), ("addtolog ", "Added log message"))
+"""Commands with an argument, answered the same whatever it is."""
+
+
 def reply(target: DashboardTarget, line: str) -> tuple[str, bool]:
     """Reply to one command line; the flag asks to close the connection after replying."""
     cmd = line.strip()
     low = cmd.lower()
+    if low in _FIXED_REPLIES:
+        return _FIXED_REPLIES[low], False
+    if low in _CLOSING_REPLIES:
+        return _CLOSING_REPLIES[low], True
+    for prefix, text in _PREFIX_REPLIES:
+        if low.startswith(prefix):
+            return text, False
+    answer = _query(target, low)
+    if answer is None:
+        answer = _command(target, cmd, low)
+    return answer, False
+
+
+def _query(target: DashboardTarget, low: str) -> str | None:
+    """The reply to a question about the controller, or None for another command."""
     major, minor, bugfix, build = target.version
     if low == "polyscopeversion":
-        return f"URSoftware {major}.{minor}.{bugfix}.{build} (Jan 01 2024)", False
+        return f"URSoftware {major}.{minor}.{bugfix}.{build} (Jan 01 2024)"
     if low == "version":
-        return f"{major}.{minor}.{bugfix}.{build}", False
+        return f"{major}.{minor}.{bugfix}.{build}"
     if low == "get serial number":
-        return target.serial_number, False
+        return target.serial_number
     if low == "get robot model":
         # The dashboard names the arm family without the e-Series suffix.
-        return target.model_name.rstrip("e"), False
-    if low == "is in remote control":
-        return "true", False
+        return target.model_name.rstrip("e")
     if low == "robotmode":
-        return f"Robotmode: {ROBOT_MODES.get(target.robot_mode, 'UNKNOWN')}", False
+        return f"Robotmode: {ROBOT_MODES.get(target.robot_mode, 'UNKNOWN')}"
     if low == "safetystatus":
-        return f"Safetystatus: {SAFETY_MODES.get(target.safety_mode, 'FAULT')}", False
+        return f"Safetystatus: {SAFETY_MODES.get(target.safety_mode, 'FAULT')}"
     if low == "safetymode":
-        return f"Safetymode: {SAFETY_MODES.get(target.safety_mode, 'FAULT')}", False
+        return f"Safetymode: {SAFETY_MODES.get(target.safety_mode, 'FAULT')}"
     if low == "programstate":
         state = RUNTIME_STATES.get(target.runtime_state, "STOPPED")
-        return f"{state} {target.program_name or '<unnamed>'}", False
+        return f"{state} {target.program_name or '<unnamed>'}"
     if low == "running":
-        return f"Program running: {'true' if target.runtime_state == 2 else 'false'}", False
+        return f"Program running: {'true' if target.runtime_state == 2 else 'false'}"
+    if low == "get loaded program":
+        if target.loaded_program:
+            return f"Loaded program: {target.loaded_program}"
+        return "No program loaded"
+    if low == "isprogramsaved":
+        return f"true {target.program_name or '<unnamed>'}"
+    return None
+
+
+def _command(target: DashboardTarget, cmd: str, low: str) -> str:
+    """The reply to a command that acts on the controller (or to an unknown one)."""
     if low == "unlock protective stop":
         if target.unlock_protective_stop():
-            return "Protective stop releasing", False
+            return "Protective stop releasing"
         return (
             "Cannot unlock protective stop until 5s after occurrence. Always inspect cause of "
-            "protective stop before unlocking",
-            False,
+            "protective stop before unlocking"
         )
-    if low == "close safety popup":
-        return "closing safety popup", False
-    if low == "close popup":
-        return "closing popup", False
-    if low.startswith("popup "):
-        return "showing popup", False
     if low == "power on":
         target.power_on()
-        return "Powering on", False
+        return "Powering on"
     if low == "power off":
         target.power_off()
-        return "Powering off", False
+        return "Powering off"
     if low == "brake release":
         target.brake_release()
-        return "Brake releasing", False
+        return "Brake releasing"
     if low.startswith("load "):
         name = cmd[5:].strip()
         target.loaded_program = name
-        return f"Loading program: {name}", False
-    if low == "get loaded program":
-        if target.loaded_program:
-            return f"Loaded program: {target.loaded_program}", False
-        return "No program loaded", False
+        return f"Loading program: {name}"
     if low == "play":
-        return ("Starting program", False) if target.play() else ("Failed to execute: play", False)
+        return "Starting program" if target.play() else "Failed to execute: play"
     if low == "pause":
-        return ("Pausing program", False) if target.pause() else ("Failed to execute: pause", False)
+        return "Pausing program" if target.pause() else "Failed to execute: pause"
     if low == "stop":
         target.stop_program()
-        return "Stopped", False
-    if low == "isprogramsaved":
-        return f"true {target.program_name or '<unnamed>'}", False
-    if low.startswith("addtolog "):
-        return "Added log message", False
-    if low == "get operational mode":
-        return "NONE", False
-    if low == "clear operational mode":
-        return "No longer controlling the operational mode. ", False
-    if low == "restart safety":
-        return "Restarting safety", False
-    if low == "shutdown":
-        return "Shutting down", True
-    if low == "quit":
-        return "Disconnected", True
-    return f"could not understand: '{cmd}'", False
+        return "Stopped"
+    return f"could not understand: '{cmd}'"

@@ -11,17 +11,15 @@ from numpy.typing import ArrayLike
 
 from wristscan.calib import se3
 from wristscan.drivers.sim.laser import LaserModel
+from wristscan.drivers.sim.mesh import MeshFormatError, TriangleMesh, read_mesh
+from wristscan.drivers.sim.primitives import Primitive
 from wristscan.drivers.sim.scene import (
     Box,
     Cylinder,
-    MeshFormatError,
     Plane,
-    Primitive,
     Scene,
     Sphere,
-    TriangleMesh,
     demo_scene,
-    read_mesh,
     sensor_looking_down,
 )
 from wristscan.drivers.sim.sensors import DEFAULT_SENSOR2FLANGE_POSE

@@ -14,7 +14,7 @@ import serial
 from hokuyolx import HokuyoLX
 
 from wristscan.calib import kinematics, se3
-from wristscan.drivers import lpf1, rf627, scip
+from wristscan.drivers import lpf1, lpf1_reader, rf627, scip
 from wristscan.drivers.records import Profile
 from wristscan.drivers.sim.clock import DeviceClock
 from wristscan.drivers.sim.scene import demo_scene, sensor_looking_down
@@ -95,7 +95,7 @@ def test_lpf1_udp_profiles_land_on_the_ball_with_true_timing() -> None:
     )
     with rx, SimulatedSensor(cfg) as sim:
         info = sim.info()
-        reasm = lpf1.Reassembler()
+        reasm = lpf1_reader.Reassembler()
 
         def decode(d: bytes) -> Profile | None:
             m = reasm.push(lpf1.parse_message(d))
@@ -137,7 +137,7 @@ def test_lpf1_tcp_hello_then_profiles_and_disconnect() -> None:
         addr = (sim.endpoint["host"], sim.endpoint["port"])
 
         def read(sock: socket.socket, n_profiles: int) -> tuple[list[lpf1.Message], int]:
-            dec = lpf1.StreamDecoder()
+            dec = lpf1_reader.StreamDecoder()
             msgs: list[lpf1.Message] = []
             while sum(m.header.msg_type == lpf1.MsgType.PROFILE for m in msgs) < n_profiles:
                 data = sock.recv(65536)
@@ -191,7 +191,7 @@ def test_lpf1_serial_over_a_pty_opened_by_path() -> None:
     with SimulatedSensor(cfg) as sim:
         port = serial.Serial(sim.endpoint["port_path"], 921600, timeout=0.5)
         try:
-            dec = lpf1.SerialDecoder()
+            dec = lpf1_reader.SerialDecoder()
             profiles: list[Profile] = []
             deadline = time.monotonic() + 10
             while len(profiles) < 20 and time.monotonic() < deadline:
@@ -398,7 +398,7 @@ def test_tcp_stream_survives_corruption_by_resynchronising() -> None:
         SimulatedSensor(cfg) as sim,
         socket.create_connection((sim.endpoint["host"], sim.endpoint["port"]), timeout=3) as sock,
     ):
-        dec = lpf1.StreamDecoder()
+        dec = lpf1_reader.StreamDecoder()
         counters: list[int] = []
         while len(counters) < 400:
             for m in dec.feed(sock.recv(65536)):

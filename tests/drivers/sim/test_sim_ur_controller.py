@@ -24,6 +24,7 @@ import rtde_receive
 from wristscan.calib import kinematics, se3
 from wristscan.drivers.sim.truth import TruthRing
 from wristscan.drivers.sim.ur.controller import ControllerConfig, SimulatedController
+from wristscan.drivers.sim.ur.fastkin import fast_kinematics, rotvec_of, tcp_jacobian
 from wristscan.drivers.sim.ur.motion import (
     CartesianPath,
     Decel,
@@ -31,9 +32,6 @@ from wristscan.drivers.sim.ur.motion import (
     PathMotion,
     RepeatabilityNoise,
     Trapezoid,
-    fast_kinematics,
-    rotvec_of,
-    tcp_jacobian,
 )
 from wristscan.drivers.ur import rtde_wire
 
