@@ -11,7 +11,7 @@ Conditions (the issue's):
   (the loaded 2-core test host does not keep up with 2048 points at 1 kHz in Python);
 * sensor latency 1.5 ms in the simulator while the daemon's configuration says 0: the procedure
   is not told. It sweeps every place both ways, measures the apparent time offset from the
-  passes' disagreement and removes it per pair (``calib_sensor.compensate_timing``);
+  passes' disagreement and removes it per pair (``calibrate.sensor.solve.compensate_timing``);
 * robot repeatability 0.03 mm. A UR data sheet's "pose repeatability +-0.03 mm" is the ISO 9283
   figure RP = mean + 3 std of the 3-D distance to the mean position; for an isotropic Gaussian
   error of per-axis sigma, RP = 3.62 sigma, so sigma = 8.3 um per axis. The simulated
@@ -53,8 +53,10 @@ import numpy as np
 from wristscan.calib import handeye, icp, kinematics, se3
 from wristscan.daemon.calibrate import sensor as cs
 from wristscan.daemon.config import Config, parse_config
+from wristscan.daemon.io.urpose import parse_ur_pose
 from wristscan.daemon.procedure.acquisition import Acquisition
 from wristscan.daemon.simcell.cell import start_cell
+from wristscan.daemon.simcell.scenarios import jog_to_ball
 from wristscan.drivers.sim.ur.controller import pick_free_loopback_host
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -108,17 +110,6 @@ def _config(
     assert cfg.sim is not None and cfg.sim.sensor.latency_s == SIM_LATENCY_S
     assert cfg.sensor.latency_s == configured_latency_s
     return cfg, text
-
-
-def _jog_to_ball(cell: Any) -> None:
-    """The operator's part: the laser line across the ball, the sensor looking down."""
-    t = cell.truth()
-    X = np.array(t["sensor2flange"])
-    S = se3.make(se3.rot_x(np.pi) @ se3.rot_z(np.pi / 2), np.array(t["ball_centre_base_m"]))
-    S[:3, 3] += [0.0, 0.0, 0.105]
-    q = kinematics.inverse_nearest("UR5e", S @ se3.invert(X), np.radians([0, -90, 90, -90, -90, 0]))
-    if not cell.controller.set_joint_positions(q):
-        raise RuntimeError("the simulated arm did not take the start pose")
 
 
 def _errors(X: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
@@ -196,7 +187,7 @@ def _latency_procedure(cfg_text: str, calibration: Path, cell: Any) -> float | N
     except ImportError:
         return None
     cfg, _ = _config(0.0, 0.0, cfg_text, calibration)
-    _jog_to_ball(cell)
+    jog_to_ball(cell)
     try:
         res = calibrate_latency(cfg, confirmed=True)
     except Exception as exc:  # another part's procedure: report and go on with ours
@@ -223,7 +214,7 @@ def _session(
     cell = start_cell(cfg)
     try:
         truth = np.array(cell.truth()["sensor2flange"])
-        _jog_to_ball(cell)
+        jog_to_ball(cell)
         t0 = time.monotonic()
 
         def progress(e: cs.ProgressEvent) -> None:
@@ -233,7 +224,7 @@ def _session(
         result = cs.run(
             cfg,
             settings,
-            nominal=cs.parse_ur_pose(NOMINAL),
+            nominal=se3.pose_to_matrix(parse_ur_pose(NOMINAL)),
             out=out,
             report=workdir / f"{name}-report.html",
             progress=progress,

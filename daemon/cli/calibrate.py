@@ -213,11 +213,13 @@ def _nominal_pose(
 ) -> NDArray[np.float64] | None:
     """The starting sensor2flange: ``--nominal``, else (unless ``--manual``) the calibration in
     force or the simulated sensor's; exit 2 when motions must be planned without one."""
+    from wristscan.calib import se3
     from wristscan.daemon.calibrate import sensor as cs
+    from wristscan.daemon.io.urpose import parse_ur_pose
 
     if nominal is not None:
         try:
-            return cs.parse_ur_pose(nominal)
+            return se3.pose_to_matrix(parse_ur_pose(nominal))
         except ValueError as exc:
             fail(f"--nominal: {exc}", EXIT_USAGE)
     if manual:
@@ -282,7 +284,7 @@ def _print_result(result: SensorCalibrationResult, out: Path, report: Path | Non
     import numpy as np
 
     from wristscan.calib import se3
-    from wristscan.daemon.io.calibfile import ur_pose_text
+    from wristscan.daemon.io.urpose import ur_pose_text
 
     j = result.joint
     pose = se3.matrix_to_pose(j.sensor2flange)

@@ -11,6 +11,8 @@ cell's configuration like any other.
   cell's true sensor2flange as the calibration in force.
 * :func:`pairing_truth_tap`, :func:`truth_offset_s`: the pairing offset that ``calibrate
   latency`` should find, measured from the simulator's truth.
+* :func:`jog_to_ball`: the arm of a running cell placed as an operator starts ``calibrate
+  sensor`` (the laser line across the scene's ball).
 """
 
 from __future__ import annotations
@@ -30,12 +32,13 @@ from wristscan.daemon.calibrate.latency import LatencyResult
 from wristscan.daemon.config import Config, SimConfig
 from wristscan.daemon.procedure.acquisition import Acquisition
 from wristscan.daemon.simcell.cell import cell_spec, write_truth_calibrations
-from wristscan.drivers.sim.cell import CellSpec
+from wristscan.drivers.sim.cell import CellSpec, SimulatedCell
 from wristscan.drivers.sim.scene import Cylinder, Scene, Sphere, demo_scene
 from wristscan.drivers.sim.scenes_apps import start_q_for_sensor
 
 __all__ = [
     "cell_with_scene",
+    "jog_to_ball",
     "pairing_truth_tap",
     "table_ball_cell",
     "table_truth",
@@ -207,3 +210,21 @@ def truth_offset_s(acq: Acquisition, result: LatencyResult) -> float:
     if not taus or sum(weights) <= 0:
         return float("nan")
     return float(np.average(taus, weights=weights))
+
+
+def jog_to_ball(cell: SimulatedCell, depth_m: float = 0.105) -> NDArray[np.float64]:
+    """What the operator does before ``calibrate sensor``: the arm of the running ``cell`` set
+    so that the laser line crosses the scene's ball, the sensor looking down from ``depth_m``
+    above its centre. Returns the joints; ``RuntimeError`` when the simulated arm does not take
+    them."""
+    assert cell.controller is not None
+    t = cell.truth()
+    X = np.array(t["sensor2flange"])
+    S = se3.make(se3.rot_x(np.pi) @ se3.rot_z(np.pi / 2), np.array(t["ball_centre_base_m"]))
+    S[:3, 3] += [0.0, 0.0, depth_m]
+    q = kinematics.inverse_nearest(
+        cell.spec.controller.model, S @ se3.invert(X), np.radians([0, -90, 90, -90, -90, 0])
+    )
+    if not cell.controller.set_joint_positions(q.tolist()):
+        raise RuntimeError("the simulated arm did not take the start pose")
+    return np.asarray(q, dtype=np.float64)

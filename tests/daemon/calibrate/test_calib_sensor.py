@@ -26,6 +26,7 @@ from wristscan.daemon.io.calibfile import (
     read_calibration,
     write_calibration,
 )
+from wristscan.daemon.io.urpose import parse_ur_pose
 
 ROOT = Path(__file__).resolve().parents[3]
 X_TRUE = se3.pose_to_matrix([0.060, 0.010, 0.200, 0.020, -0.015, 0.010])
@@ -97,12 +98,13 @@ def test_plan_orientations_replaces_and_skips_unreachable_ones() -> None:
 
 
 def test_parse_ur_pose() -> None:
-    T = cs.parse_ur_pose("p[0.06, 0.01, 0.2, 0.02, -0.015, 0.01]")
+    T = se3.pose_to_matrix(parse_ur_pose("p[0.06, 0.01, 0.2, 0.02, -0.015, 0.01]"))
     np.testing.assert_allclose(T, X_TRUE, atol=1e-12)
-    np.testing.assert_allclose(cs.parse_ur_pose("0.06 0.01 0.2 0.02 -0.015 0.01"), X_TRUE)
+    T = se3.pose_to_matrix(parse_ur_pose("0.06 0.01 0.2 0.02 -0.015 0.01"))
+    np.testing.assert_allclose(T, X_TRUE)
     for bad in ("p[1, 2, 3]", "p[60, 10, 200, 0, 0, 0]", "p[a, b, c, d, e, f]"):
         with pytest.raises(ValueError):
-            cs.parse_ur_pose(bad)
+            parse_ur_pose(bad)
 
 
 def test_iso9283_repeatability_as_a_per_axis_sigma() -> None:
@@ -350,19 +352,6 @@ def _load(path: Path) -> Config:
     return parse_config(path.read_text(), str(path), path.parent)
 
 
-def _jog_to_ball(cell: Any, depth: float = 0.105) -> np.ndarray:
-    """What the operator does first: the laser line across the ball, sensor looking down."""
-    from wristscan.calib import kinematics
-
-    t = cell.truth()
-    X = np.array(t["sensor2flange"])
-    S = se3.make(se3.rot_x(np.pi) @ se3.rot_z(np.pi / 2), np.array(t["ball_centre_base_m"]))
-    S[:3, 3] += [0.0, 0.0, depth]
-    q = kinematics.inverse_nearest("UR5e", S @ se3.invert(X), np.radians([0, -90, 90, -90, -90, 0]))
-    assert cell.controller.set_joint_positions(q)
-    return np.asarray(q)
-
-
 def _cli(args: list[str]) -> Any:
     from wristscan.daemon.cli.app import app
 
@@ -372,12 +361,13 @@ def _cli(args: list[str]) -> Any:
 @pytest.fixture
 def sim_cell(tmp_path: Path) -> Any:
     from wristscan.daemon.simcell.cell import start_cell
+    from wristscan.daemon.simcell.scenarios import jog_to_ball
 
     def start(**kw: Any) -> tuple[Any, Path]:
         path = _sim_config(tmp_path, **kw)
         cell = start_cell(_load(path))
         cells.append(cell)
-        _jog_to_ball(cell)
+        jog_to_ball(cell)
         return cell, path
 
     cells: list[Any] = []

@@ -1,0 +1,126 @@
+"""What the sensor calibration found (:class:`SensorCalibrationResult`) and the calibration file
+made of it (:func:`calibration_of`): the joint solution with its covariance and residuals, and
+the ball, the validation and the two-step figures as named parameters."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from wristscan.calib import handeye
+from wristscan.daemon.calibrate.sensor.plan import OrientationPlan, Settings, rotation_between
+from wristscan.daemon.calibrate.sensor.solve import ApparentLatency
+from wristscan.daemon.calibrate.sensor.sweeps import RecordedSweep
+from wristscan.daemon.calibrate.sensor.validate import CheckScan, LeaveOneOut
+from wristscan.daemon.io.calibfile import Calibration, Residuals, RobotIdentity, SensorIdentity
+
+__all__ = ["COVARIANCE_PARAMETERS", "METHOD", "SensorCalibrationResult", "calibration_of"]
+
+FloatArray = NDArray[np.float64]
+
+METHOD = "ball-matching+joint-refinement"
+"""``method`` of the calibration files written here."""
+
+COVARIANCE_PARAMETERS = (
+    "rot_sensor_x_rad",
+    "rot_sensor_y_rad",
+    "rot_sensor_z_rad",
+    "x_m",
+    "y_m",
+    "z_m",
+)
+"""Covariance order of the file: rotation increments about the sensor axes (right perturbation,
+radians), then the sensor origin in the flange frame (metres)."""
+
+
+@dataclass(frozen=True, eq=False)
+class SensorCalibrationResult:
+    """Everything the procedure found; :func:`calibration_of` and
+    :func:`~.report.build_report` use it."""
+
+    settings: Settings
+    nominal: FloatArray | None
+    sweeps: tuple[RecordedSweep, ...]
+    """The solved sweeps, FOV first, in the order of the solutions' per-sweep figures."""
+    two_step: handeye.HandEyeResult
+    joint: handeye.HandEyeResult
+    uncompensated: handeye.HandEyeResult | None
+    """The joint refinement before the per-pair time offsets were removed (None: not done)."""
+    loo: LeaveOneOut | None
+    check: CheckScan | None
+    check_sweeps: tuple[RecordedSweep, ...]
+    latency: ApparentLatency | None
+    orientations: tuple[OrientationPlan, ...]
+    fov_reference_flange2base: FloatArray
+    min_z_angle_deg: float
+    """Smallest angle between the sensor Z axes of any two orientations used (degrees)."""
+    notes: tuple[str, ...]
+    configured_latency_s: float
+    manual: bool
+    duration_s: float
+    robot_sigma_m: float = 0.0
+    """Per-axis robot repeatability the covariance used (m): the larger of the data sheet's and
+    the observed one."""
+    observed_robot_sigma_m: float = 0.0
+    """Per-axis scatter of the places' ball centres (m), see
+    :func:`~.solve.observed_robot_sigma`."""
+
+    @property
+    def sensor2flange(self) -> FloatArray:
+        return self.joint.sensor2flange
+
+
+def _sym(C: FloatArray) -> FloatArray:
+    return np.asarray((C + C.T) / 2)
+
+
+def calibration_of(
+    result: SensorCalibrationResult, robot: RobotIdentity, sensor: SensorIdentity
+) -> Calibration:
+    """The calibration file's content: the joint solution with its covariance and residuals, the
+    ball, the validation figures and the two-step figures as named parameters."""
+    j, t = result.joint, result.two_step
+    params: dict[str, float] = {
+        "ball_radius_m": result.settings.ball_radius_m,
+        "ball_centre_x_m": float(j.ball_centre_base[0]),
+        "ball_centre_y_m": float(j.ball_centre_base[1]),
+        "ball_centre_z_m": float(j.ball_centre_base[2]),
+        "condition_number": float(j.condition),
+        "n_sweeps": float(len(result.sweeps)),
+        "n_points": float(j.n_points),
+        "min_z_angle_deg": float(result.min_z_angle_deg),
+        "robot_sigma_m": float(result.robot_sigma_m or result.settings.robot_sigma_m),
+        "observed_robot_sigma_m": float(result.observed_robot_sigma_m),
+        "two_step_rms_m": float(t.rms),
+        "two_step_translation_diff_m": float(
+            np.linalg.norm(t.sensor2flange[:3, 3] - j.sensor2flange[:3, 3])
+        ),
+        "two_step_rotation_diff_rad": rotation_between(t.sensor2flange, j.sensor2flange),
+    }
+    if result.loo is not None:
+        params["loo_max_translation_m"] = result.loo.max_translation_dev_m
+        params["loo_max_rotation_rad"] = result.loo.max_rotation_dev_rad
+    if result.check is not None:
+        params["check_centre_error_m"] = result.check.centre_error_m
+        params["check_radius_error_m"] = result.check.radius_error_m
+        params["check_rms_m"] = result.check.rms_m
+    if result.latency is not None and math.isfinite(result.latency.offset_s):
+        params["apparent_latency_offset_s"] = result.latency.offset_s
+    params = {k: v for k, v in params.items() if math.isfinite(v)}
+    per = np.nan_to_num(np.asarray(j.per_sweep_rms, dtype=np.float64))
+    notes = "; ".join(result.notes)
+    return Calibration(
+        kind="sensor2flange",
+        transform=j.sensor2flange,
+        robot=robot,
+        sensor=sensor,
+        method=METHOD,
+        residuals=Residuals(float(j.rms), tuple(float(v) for v in per)),
+        covariance=_sym(np.asarray(j.cov, dtype=np.float64)),
+        covariance_parameters=COVARIANCE_PARAMETERS,
+        parameters=params,
+        notes=("manual mode; " if result.manual else "") + notes,
+    )
