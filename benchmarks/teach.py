@@ -43,19 +43,16 @@ from scipy.spatial import cKDTree
 from wristscan.calib import kinematics, se3
 from wristscan.calib.edge import EdgeModel
 from wristscan.daemon.config import Config, load_config
+from wristscan.daemon.io.urpose import parse_ur_pose
 from wristscan.daemon.simcell.cell import dump_toml, free_sim_config
 from wristscan.daemon.simcell.scenarios import cell_with_scene, write_truth_calibration
-from wristscan.daemon.teach.edge import (
-    EdgeOptions,
-    learn_edge,
-    read_edge_path,
-    write_edge_path,
-)
+from wristscan.daemon.teach.edge import EdgeOptions, learn_edge
+from wristscan.daemon.teach.edge_path import read_edge_path, write_edge_path
 from wristscan.daemon.teach.plane import (
     PlaneOptions,
     teach_plane,
 )
-from wristscan.daemon.teach.replay import ReplayOptions, parse_ur_pose, plan_replay, run_program
+from wristscan.daemon.teach.replay import ReplayOptions, plan_replay, run_program
 from wristscan.drivers.sim.cell import SimulatedCell
 from wristscan.drivers.sim.scene import sensor_looking_down
 from wristscan.drivers.sim.scenes_apps import dome_scene, sensor_pose_at_edge, tilted_plate_scene

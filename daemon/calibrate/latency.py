@@ -21,7 +21,7 @@ over all sweeps; the latency to configure is ``latency_s + dt``.
 
 The result is a correction that the operator puts into the configuration (``latency_s = ...``
 under ``[sensor]``); the procedure never rewrites the configuration. Safety as for the table
-procedure (:mod:`.calib_table`).
+procedure (:mod:`.table`); the ball scanning is shared with it (:mod:`.ball`).
 """
 
 from __future__ import annotations
@@ -40,7 +40,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wristscan.calib.latency import LatencyEstimate, estimate_latency
-from wristscan.daemon.calibrate.table import BallMeasurement, Progress, ball_scanner, no_progress
+from wristscan.daemon.calibrate.ball import BallMeasurement, BallScanner, ball_scanner
+from wristscan.daemon.calibrate.table import Progress, no_progress
 from wristscan.daemon.config import Config
 from wristscan.daemon.io.atomic import write_atomic
 from wristscan.daemon.procedure.errors import ProcedureError
@@ -189,9 +190,9 @@ def calibrate_latency(
     ``acquisition``: an already built, unopened one (tests, benchmarks); default: one on the
     devices of ``cfg``.
 
-    Raises :class:`~.calib_table.MotionNotConfirmed` before anything moves,
-    :class:`~.calib_table.ProcedureError` without a sensor calibration or when the sweeps cannot
-    separate the latency, :class:`~.calib_table.ProcedureAborted` when the run stopped part way.
+    Raises (all from :mod:`wristscan.daemon.procedure.errors`) :class:`MotionNotConfirmed`
+    before anything moves, :class:`ProcedureError` without a sensor calibration or when the
+    sweeps cannot separate the latency, :class:`ProcedureAborted` when the run stopped part way.
     """
     opts = options or LatencyOptions()
     require_motion(cfg, confirmed)
@@ -217,39 +218,12 @@ def calibrate_latency(
                 strict_clock=False,
             )
             centre = first.centre
-            sweeps: list[LatencySweep] = []
-            for i, (v, d) in enumerate(plan):
-                way = "forward" if d > 0 else "backward"
-                report(2 + i, total, f"sweep {i + 1}/{len(plan)}: {way} at {v * 1e3:.0f} mm/s")
-                ball = scanner.measure(
-                    centre, speed_m_s=v, margin_m=opts.margin_m, direction=d, seed=i
-                )
-                if ball.speed_spread > 0.05:
-                    log.warning(
-                        "sweep %d: the speed varied by %.0f %% over the ball (too short a run-up?)",
-                        i + 1,
-                        100 * ball.speed_spread,
-                    )
-                sweeps.append(LatencySweep(v, d, ball))
+            sweeps = _sweep_plan(scanner, centre, plan, opts, report)
             report(len(plan) + 2, total, "fitting the latency")
             est = _fit(sweeps)
             bad = outlier_sweeps(est)
-            for i in bad:
-                # One sweep far off the others: its poses were wrong for part of it (a stalled
-                # stream, a clock hiccup); measure it again rather than let it pull the fit.
-                s = sweeps[i]
-                off = float(np.linalg.norm(est.residuals[i])) * 1e6
-                report(len(plan) + 2, total, f"sweep {i + 1} is {off:.0f} um off: sweeping again")
-                ball = scanner.measure(
-                    centre,
-                    speed_m_s=s.speed_m_s,
-                    margin_m=opts.margin_m,
-                    direction=s.direction,
-                    seed=1000 + i,
-                )
-                ball = dataclasses.replace(ball, rescans=s.ball.rescans + ball.rescans + 1)
-                sweeps[i] = LatencySweep(s.speed_m_s, s.direction, ball)
             if bad:
+                _sweep_again(scanner, centre, sweeps, bad, est, opts, report)
                 est = _fit(sweeps)
                 still = outlier_sweeps(est)
                 if still:
@@ -267,6 +241,59 @@ def calibrate_latency(
             duration_s=time.monotonic() - t_start,
             config_source=cfg.source,
         )
+
+
+def _sweep_plan(
+    scanner: BallScanner,
+    centre: FloatArray,
+    plan: Sequence[tuple[float, int]],
+    opts: LatencyOptions,
+    report: Progress,
+) -> list[LatencySweep]:
+    """One sweep over the ball at ``centre`` per ``(speed, direction)`` of ``plan``."""
+    total = len(plan) + 3
+    sweeps: list[LatencySweep] = []
+    for i, (v, d) in enumerate(plan):
+        way = "forward" if d > 0 else "backward"
+        report(2 + i, total, f"sweep {i + 1}/{len(plan)}: {way} at {v * 1e3:.0f} mm/s")
+        ball = scanner.measure(centre, speed_m_s=v, margin_m=opts.margin_m, direction=d, seed=i)
+        if ball.speed_spread > 0.05:
+            log.warning(
+                "sweep %d: the speed varied by %.0f %% over the ball (too short a run-up?)",
+                i + 1,
+                100 * ball.speed_spread,
+            )
+        sweeps.append(LatencySweep(v, d, ball))
+    return sweeps
+
+
+def _sweep_again(
+    scanner: BallScanner,
+    centre: FloatArray,
+    sweeps: list[LatencySweep],
+    bad: Sequence[int],
+    est: LatencyEstimate,
+    opts: LatencyOptions,
+    report: Progress,
+) -> None:
+    """Measure the sweeps ``bad`` (indices into ``sweeps``) again, replacing them in place."""
+    step = len(sweeps) + 2
+    total = len(sweeps) + 3
+    for i in bad:
+        # One sweep far off the others: its poses were wrong for part of it (a stalled
+        # stream, a clock hiccup); measure it again rather than let it pull the fit.
+        s = sweeps[i]
+        off = float(np.linalg.norm(est.residuals[i])) * 1e6
+        report(step, total, f"sweep {i + 1} is {off:.0f} um off: sweeping again")
+        ball = scanner.measure(
+            centre,
+            speed_m_s=s.speed_m_s,
+            margin_m=opts.margin_m,
+            direction=s.direction,
+            seed=1000 + i,
+        )
+        ball = dataclasses.replace(ball, rescans=s.ball.rescans + ball.rescans + 1)
+        sweeps[i] = LatencySweep(s.speed_m_s, s.direction, ball)
 
 
 def _fit(sweeps: Sequence[LatencySweep]) -> LatencyEstimate:
@@ -311,8 +338,9 @@ def write_latency_result(path: str | Path, result: LatencyResult) -> Path:
 
 
 def latency_report(result: LatencyResult, subtitle: str = "") -> Any:
-    """A :class:`~.report.Report` of ``result``: the latency with its uncertainty, every sweep,
-    and (with matplotlib) the apparent ball position against the sweep velocity."""
+    """A :class:`~wristscan.daemon.io.report.Report` of ``result``: the latency with its
+    uncertainty, every sweep, and (with matplotlib) the apparent ball position against the
+    sweep velocity."""
     from wristscan.daemon.io.report import Report, have_matplotlib
 
     e = result.estimate
@@ -381,23 +409,31 @@ def latency_report(result: LatencyResult, subtitle: str = "") -> Any:
         rows,
     )
     if have_matplotlib():
-        from wristscan.daemon.io.report import new_figure
-
-        fig, ax = new_figure(1, 1, figsize=(6.5, 4.2))
-        ax.plot(1e3 * speeds, 1e6 * along, "o", label="sweeps")
-        vmax = float(np.max(np.abs(speeds))) * 1.1
-        vv = np.linspace(-vmax, vmax, 3)
-        ax.plot(
-            1e3 * vv,
-            1e6 * vv * e.latency_s,
-            "-",
-            label=f"fit: {e.latency_s * 1e3:.3f} +- {e.std_s * 1e3:.3f} ms",
-        )
-        ax.axhline(0, color="k", lw=0.5)
-        ax.set_xlabel("sweep velocity along the forward direction (mm/s)")
-        ax.set_ylabel("apparent ball position (um)")
-        ax.legend(fontsize=8)
-        rep.figure(fig, "Apparent ball position against sweep velocity: the slope is the latency")
+        _latency_figure(rep, result)
     else:
         rep.text("(figures need matplotlib: pip install 'wristscan[plot]')")
     return rep
+
+
+def _latency_figure(rep: Any, result: LatencyResult) -> None:
+    """The apparent ball position of every sweep against its velocity, with the fitted line."""
+    from wristscan.daemon.io.report import new_figure
+
+    e = result.estimate
+    along = result.along_motion_m()
+    speeds = result.signed_speeds_m_s()
+    fig, ax = new_figure(1, 1, figsize=(6.5, 4.2))
+    ax.plot(1e3 * speeds, 1e6 * along, "o", label="sweeps")
+    vmax = float(np.max(np.abs(speeds))) * 1.1
+    vv = np.linspace(-vmax, vmax, 3)
+    ax.plot(
+        1e3 * vv,
+        1e6 * vv * e.latency_s,
+        "-",
+        label=f"fit: {e.latency_s * 1e3:.3f} +- {e.std_s * 1e3:.3f} ms",
+    )
+    ax.axhline(0, color="k", lw=0.5)
+    ax.set_xlabel("sweep velocity along the forward direction (mm/s)")
+    ax.set_ylabel("apparent ball position (um)")
+    ax.legend(fontsize=8)
+    rep.figure(fig, "Apparent ball position against sweep velocity: the slope is the latency")

@@ -1,52 +1,7 @@
-"""Scan plans: what a scan job does, how a plan is generated, and the checks that run before
-anything moves.
-
-A plan (TOML or JSON, validated here) lists **passes**. Every pose in it is the pose of the
-*sensor* (its origin and axes; +Z looks at the part, the laser plane is the sensor's Y-Z plane)
-in the plan's ``frame``:
-
-* ``frame = "part"``: the rotary table's part frame (Eq. (1): ``base2part = table2part(theta) @
-  base2table``). A pass there follows the part whatever the table angle, and the calibrations in
-  force turn it into robot poses at run time.
-* ``frame = "base"``: the robot base frame (no table needed).
-
-Pass kinds (the two modes of Borangiu et al. 2009, section 4):
-
-* ``linear``: the sensor moves from ``start_m`` to ``end_m`` at constant orientation (the paper's
-  best mode: "a sequence of simple linear sweep motions, keeping its orientation constant").
-* ``path``: a free 3D path through ``waypoints`` whose position and orientation change together
-  (the paper's first mode); executed as linear moves through the waypoints, recorded as one pass.
-
-Each pass may name a rotary-table angle ``table_deg``; the table turns there before the pass.
-
-An orientation is either ``"down"`` (sensor +Z along the frame's -Z, sensor X along the frame's
-X), ``{yaw_deg, pitch_deg, tilt_deg}`` (``Rz(yaw) @ down @ Ry(pitch) @ Rx(tilt)``: ``yaw`` turns
-the pass direction about the vertical, ``tilt`` leans the laser plane sideways about the pass
-direction so that it sees side faces, ``pitch`` leans it forwards or backwards along the pass), or
-``{rotvec = [rx, ry, rz]}``, the sensor-to-frame rotation as a UR rotation vector (rad).
-
-Example::
-
-    schema_version = 1
-    frame = "part"
-    speed_m_s = 0.04            # pass speed
-    travel_speed_m_s = 0.15     # moves between passes
-    retract_m = 0.03            # back off along the sensor's -Z before and after each pass
-
-    [[passes]]
-    kind = "linear"
-    table_deg = 0.0
-    start_m = [-0.10, 0.01, 0.16]
-    end_m = [0.08, 0.01, 0.16]
-    orientation = { tilt_deg = 25.0 }
-
-    [[passes]]
-    kind = "path"
-    table_deg = 90.0
-    waypoints = [
-      { position_m = [0.0, -0.05, 0.17], orientation = "down" },
-      { position_m = [0.0, 0.05, 0.15], orientation = { pitch_deg = 20.0 } },
-    ]
+"""Scan plans in robot terms: the plan's sensor poses resolved to the base frame through the
+calibrations in force (:func:`resolve_plan`), the checks that run before anything moves
+(:func:`check_plan`) and the readable summary of a plan with both (:func:`describe_plan`). The
+plan model and its file are in :mod:`.plan_file`, its generation in :mod:`.plan_generate`.
 
 Checks before motion (:func:`check_plan`): from the robot's current joints, the whole job is
 followed with the inverse kinematics: the joint move to each pass's approach pose, the linear
@@ -55,322 +10,49 @@ one as the controller does) and out. A pose out of reach, a branch flip or singu
 turning more than ``max_joint_step_rad`` between neighbouring samples), a TCP outside the
 workspace box (also along the joint moves) or a speed above the configured cap rejects the plan
 with one line per problem, and nothing moves.
-
-Generation (:func:`generate_plan`): from a bounding box, the width of the laser line (field of
-view), an overlap fraction and a standoff, for each table angle and each view (tilt): parallel
-linear passes, serpentine, spaced so that neighbouring strips share at least ``overlap`` of the
-line width. The strips are laid out across the box's projection along the view direction, so
-every point of the box that the laser can see from that direction lies in a strip (see
-``docs/scan.md``).
 """
 
 from __future__ import annotations
 
 import itertools
-import json
-import logging
 import math
-import tomllib
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from pydantic import (
-    BaseModel,
-    BeforeValidator,
-    ConfigDict,
-    Field,
-    ValidationError,
-    model_validator,
-)
 
 from wristscan.calib import kinematics, se3
 from wristscan.calib import table as table_math
+from wristscan.daemon.scan.plan_file import (
+    LinearPass,
+    Orientation,
+    PlanError,
+    ScanPlan,
+    load_plan,
+    plan_to_toml,
+)
+from wristscan.daemon.scan.plan_generate import generate_plan
 
+# TODO(lead): daemon/cli/scan.py, daemon/scan/job.py and daemon/scan/record.py import the plan
+# model, its file and its generation from here; their homes are .plan_file and .plan_generate.
 __all__ = [
     "CellGeometry",
-    "LinearPass",
-    "Orientation",
     "PassCheck",
-    "PathPass",
     "PlanCheck",
     "PlanError",
     "ResolvedPass",
     "ScanPlan",
-    "Waypoint",
     "check_plan",
     "describe_plan",
     "generate_plan",
     "load_plan",
-    "parse_plan",
     "plan_to_toml",
     "resolve_plan",
-    "strip_layout",
 ]
 
-log = logging.getLogger(__name__)
-
 FloatArray = NDArray[np.float64]
-
-SCHEMA_VERSION = 1
-
-
-class PlanError(ValueError):
-    """A plan that cannot be used (invalid file, impossible generation request, missing
-    calibration for its frame); the message says why in one line per problem."""
-
-
-# --------------------------------------------------------------------------------------------
-# The plan model
-
-
-def _down_alias(v: Any) -> Any:
-    if isinstance(v, str):
-        if v.strip().lower() == "down":
-            return {}
-        raise ValueError(f'an orientation is "down" or a table, not {v!r}')
-    return v
-
-
-class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-
-
-Vec3 = tuple[float, float, float]
-
-
-class Orientation(_Model):
-    """Sensor orientation in the plan frame (see the module doc)."""
-
-    yaw_deg: float = 0.0
-    pitch_deg: Annotated[float, Field(ge=-89.0, le=89.0)] = 0.0
-    tilt_deg: Annotated[float, Field(ge=-89.0, le=89.0)] = 0.0
-    rotvec: Vec3 | None = None
-    """The sensor-to-frame rotation as a UR rotation vector (rad); excludes the angles."""
-
-    @model_validator(mode="after")
-    def _one_form(self) -> Orientation:
-        if self.rotvec is not None and (self.yaw_deg or self.pitch_deg or self.tilt_deg):
-            raise ValueError("give either rotvec or yaw_deg/pitch_deg/tilt_deg, not both")
-        return self
-
-    def matrix(self) -> FloatArray:
-        """The rotation ``sensor2frame`` (3, 3)."""
-        if self.rotvec is not None:
-            return np.asarray(se3.rotvec_to_matrix(np.asarray(self.rotvec, dtype=np.float64)))
-        return down_matrix(self.yaw_deg, self.pitch_deg, self.tilt_deg)
-
-    def is_down(self) -> bool:
-        return self.rotvec is None and not (self.yaw_deg or self.pitch_deg or self.tilt_deg)
-
-
-OrientationField = Annotated[Orientation, BeforeValidator(_down_alias)]
-
-
-def down_matrix(yaw_deg: float = 0.0, pitch_deg: float = 0.0, tilt_deg: float = 0.0) -> FloatArray:
-    """``Rz(yaw) @ Rx(pi) @ Ry(pitch) @ Rx(tilt)``: the sensor looking down (its +Z along the
-    frame's -Z, its X along the frame's X turned by ``yaw``), leaned by ``pitch`` about its Y and
-    ``tilt`` about its X axis (degrees). A positive tilt turns the view towards the frame's +Y
-    (for yaw 0)."""
-    y, p, t = (math.radians(a) for a in (yaw_deg, pitch_deg, tilt_deg))
-    return np.asarray(se3.rot_z(y) @ se3.rot_x(math.pi) @ se3.rot_y(p) @ se3.rot_x(t))
-
-
-class LinearPass(_Model):
-    """The sensor from ``start_m`` to ``end_m`` (its origin, plan frame, m) at one orientation."""
-
-    kind: Literal["linear"]
-    label: str = ""
-    start_m: Vec3
-    end_m: Vec3
-    orientation: OrientationField = Orientation()
-    speed_m_s: Annotated[float, Field(gt=0.0, le=2.0)] | None = None
-    """Pass speed (m/s); None: the plan's ``speed_m_s``."""
-    table_deg: float | None = None
-    """Rotary-table angle for the pass (degrees); None: leave the table where it is."""
-
-    @model_validator(mode="after")
-    def _length(self) -> LinearPass:
-        if math.dist(self.start_m, self.end_m) < 1e-4:
-            raise ValueError("start_m and end_m must be at least 0.1 mm apart")
-        return self
-
-
-class Waypoint(_Model):
-    position_m: Vec3
-    orientation: OrientationField = Orientation()
-
-
-class PathPass(_Model):
-    """A free 3D path: linear moves through ``waypoints`` (position and orientation together)."""
-
-    kind: Literal["path"]
-    label: str = ""
-    waypoints: Annotated[list[Waypoint], Field(min_length=2, max_length=1000)]
-    speed_m_s: Annotated[float, Field(gt=0.0, le=2.0)] | None = None
-    table_deg: float | None = None
-
-
-Pass = Annotated[LinearPass | PathPass, Field(discriminator="kind")]
-
-
-class Crop(_Model):
-    """Box kept of the clouds, in the plan frame (the frame of the clouds too), m."""
-
-    min_m: Vec3
-    max_m: Vec3
-
-    @model_validator(mode="after")
-    def _order(self) -> Crop:
-        if any(a >= b for a, b in zip(self.min_m, self.max_m, strict=True)):
-            raise ValueError("crop: every min_m value must be below its max_m value")
-        return self
-
-
-class ScanPlan(_Model):
-    """A scan job (see the module doc). SI units: metres, m/s; angles in degrees by name."""
-
-    schema_version: Literal[1] = 1
-    name: str = ""
-    frame: Literal["base", "part"] = "part"
-    speed_m_s: Annotated[float, Field(gt=0.0, le=2.0)] = 0.04
-    travel_speed_m_s: Annotated[float, Field(gt=0.0, le=2.0)] = 0.15
-    retract_m: Annotated[float, Field(ge=0.0, le=0.5)] = 0.03
-    crop: Crop | None = None
-    passes: Annotated[list[Pass], Field(min_length=1, max_length=10_000)]
-    generator: dict[str, Any] | None = None
-    """How a generated plan was made (bbox, field of view, overlap, standoff): for the report."""
-
-
-def _problem_lines(exc: ValidationError, source: str) -> list[str]:
-    out = []
-    for e in exc.errors(include_url=False):
-        # Drop the union tags ("linear", "path") that pydantic puts into the location.
-        loc = [str(p) for p in e["loc"] if p not in ("linear", "path")]
-        where = ".".join(loc) if loc else "plan"
-        msg = str(e["msg"]).removeprefix("Value error, ")
-        got = e.get("input")
-        extra = f" (got {json.dumps(got)[:60]})" if isinstance(got, int | float | str) else ""
-        out.append(f"{source}: {where}: {msg}{extra}")
-    return out
-
-
-def parse_plan(data: dict[str, Any], source: str = "<plan>") -> ScanPlan:
-    """Validate a plan document; :class:`PlanError` with one line per problem."""
-    if not isinstance(data, dict):
-        raise PlanError(f"{source}: a plan is a table of settings with a passes list")
-    if data.get("schema_version", SCHEMA_VERSION) != SCHEMA_VERSION:
-        raise PlanError(
-            f"{source}: schema_version {data.get('schema_version')!r} is not supported "
-            f"(this wristscan reads {SCHEMA_VERSION})"
-        )
-    try:
-        return ScanPlan.model_validate(data)
-    except ValidationError as exc:
-        raise PlanError("\n".join(_problem_lines(exc, source))) from None
-
-
-def load_plan(path: str | Path) -> ScanPlan:
-    """Read a plan from a ``.toml`` or ``.json`` file; :class:`PlanError` says what is wrong."""
-    p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise PlanError(f"{p}: cannot read the plan: {exc}") from None
-    try:
-        if p.suffix.lower() == ".json":
-            data = json.loads(text)
-        else:
-            data = tomllib.loads(text)
-    except (json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
-        raise PlanError(f"{p}: not valid {p.suffix.lstrip('.').upper() or 'TOML'}: {exc}") from None
-    return parse_plan(data, str(p))
-
-
-# --------------------------------------------------------------------------------------------
-# Writing plans (TOML)
-
-
-def _toml_scalar(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        r = repr(round(v, 9))
-        return r if ("." in r or "e" in r or "n" in r) else r + ".0"
-    if isinstance(v, str):
-        return json.dumps(v)
-    if isinstance(v, list | tuple):
-        return "[" + ", ".join(_toml_scalar(x) for x in v) + "]"
-    if isinstance(v, dict):
-        return "{ " + ", ".join(f"{k} = {_toml_scalar(x)}" for k, x in v.items()) + " }"
-    raise TypeError(f"cannot write {type(v).__name__} to TOML")
-
-
-def _orientation_doc(o: Orientation) -> Any:
-    if o.is_down():
-        return "down"
-    if o.rotvec is not None:
-        return {"rotvec": list(o.rotvec)}
-    return {
-        k: v
-        for k, v in (("yaw_deg", o.yaw_deg), ("pitch_deg", o.pitch_deg), ("tilt_deg", o.tilt_deg))
-        if v
-    }
-
-
-def plan_to_toml(plan: ScanPlan) -> str:
-    """The plan as a TOML document that :func:`load_plan` reads back to an equal plan."""
-    lines = [
-        "# wristscan scan plan: sensor poses (origin, axes) in the plan frame; metres, m/s, deg",
-        f"schema_version = {SCHEMA_VERSION}",
-    ]
-    if plan.name:
-        lines.append(f"name = {_toml_scalar(plan.name)}")
-    lines += [
-        f"frame = {_toml_scalar(plan.frame)}",
-        f"speed_m_s = {_toml_scalar(plan.speed_m_s)}",
-        f"travel_speed_m_s = {_toml_scalar(plan.travel_speed_m_s)}",
-        f"retract_m = {_toml_scalar(plan.retract_m)}",
-    ]
-    if plan.crop is not None:
-        lines.append(
-            f"crop = {{ min_m = {_toml_scalar(plan.crop.min_m)}, "
-            f"max_m = {_toml_scalar(plan.crop.max_m)} }}"
-        )
-    if plan.generator:
-        lines.append("")
-        lines.append("[generator]")
-        for k, v in plan.generator.items():
-            lines.append(f"{k} = {_toml_scalar(v)}")
-    for p in plan.passes:
-        lines.append("")
-        lines.append("[[passes]]")
-        lines.append(f"kind = {_toml_scalar(p.kind)}")
-        if p.label:
-            lines.append(f"label = {_toml_scalar(p.label)}")
-        if p.table_deg is not None:
-            lines.append(f"table_deg = {_toml_scalar(p.table_deg)}")
-        if p.speed_m_s is not None:
-            lines.append(f"speed_m_s = {_toml_scalar(p.speed_m_s)}")
-        if isinstance(p, LinearPass):
-            lines.append(f"start_m = {_toml_scalar(p.start_m)}")
-            lines.append(f"end_m = {_toml_scalar(p.end_m)}")
-            lines.append(f"orientation = {_toml_scalar(_orientation_doc(p.orientation))}")
-        else:
-            lines.append("waypoints = [")
-            for w in p.waypoints:
-                doc = {
-                    "position_m": list(w.position_m),
-                    "orientation": _orientation_doc(w.orientation),
-                }
-                lines.append(f"  {_toml_scalar(doc)},")
-            lines.append("]")
-    return "\n".join(lines) + "\n"
 
 
 # --------------------------------------------------------------------------------------------
@@ -680,205 +362,6 @@ def check_plan(
         pc.q_end = follow.q.copy()
         pc.ik_samples = follow.n_ik - n0
     return PlanCheck(checks, plan_problems)
-
-
-# --------------------------------------------------------------------------------------------
-# Generation
-
-
-@dataclass(frozen=True)
-class StripLayout:
-    """Strips of one view over a box: centres across the line, extent along the pass."""
-
-    centres_v_m: FloatArray
-    """Lateral centre of each strip along the laser line (the view's v axis, m)."""
-    u_range_m: tuple[float, float]
-    """Extent along the pass direction (m), margins included."""
-    depth_m: float
-    """Position of the sensor origins along the view direction (m)."""
-    depth_span_m: tuple[float, float]
-    """Nearest and farthest box corner seen from the sensor along its Z (m)."""
-    step_m: float
-    """Distance between neighbouring strip centres (m); 0 for one strip."""
-    overlap_fraction: float
-    """Shared width of neighbouring strips over the line width (1 for one strip)."""
-
-
-def strip_layout(
-    rotation: ArrayLike,
-    bbox_min_m: ArrayLike,
-    bbox_max_m: ArrayLike,
-    *,
-    fov_width_m: float,
-    overlap: float,
-    standoff_m: float,
-    margin_m: float = 0.003,
-) -> StripLayout:
-    """Lay strips of a laser line ``fov_width_m`` wide over a box seen with the sensor rotation
-    ``rotation`` (sensor2frame, 3x3): u = sensor X (pass direction), v = sensor Y (the line),
-    d = sensor Z (view). The box corners projected on v span ``[v0, v1]``; strips of width W are
-    spread evenly with at most ``W (1 - overlap)`` between centres, the first and last flush
-    with the ends. The sensor origins lie ``standoff_m`` before the middle of the box along d.
-    """
-    R = np.asarray(rotation, dtype=np.float64)
-    lo = np.asarray(bbox_min_m, dtype=np.float64)
-    hi = np.asarray(bbox_max_m, dtype=np.float64)
-    corners = np.array(
-        [
-            [(lo, hi)[i][0], (lo, hi)[j][1], (lo, hi)[k][2]]
-            for i in (0, 1)
-            for j in (0, 1)
-            for k in (0, 1)
-        ]
-    )
-    proj = corners @ R  # columns: u, v, d
-    u0, v0, d0 = proj.min(axis=0)
-    u1, v1, d1 = proj.max(axis=0)
-    width = float(v1 - v0)
-    W = float(fov_width_m)
-    if width <= W:
-        centres = np.array([0.5 * (v0 + v1)])
-        step = 0.0
-        frac = 1.0
-    else:
-        n = math.ceil((width - W) / (W * (1.0 - overlap)) - 1e-9) + 1
-        step = (width - W) / (n - 1)
-        centres = v0 + 0.5 * W + step * np.arange(n)
-        frac = (W - step) / W
-    depth = 0.5 * float(d0 + d1) - standoff_m
-    return StripLayout(
-        centres_v_m=np.asarray(centres, dtype=np.float64),
-        u_range_m=(float(u0) - margin_m, float(u1) + margin_m),
-        depth_m=depth,
-        depth_span_m=(float(d0) - depth, float(d1) - depth),
-        step_m=float(step),
-        overlap_fraction=float(frac),
-    )
-
-
-def generate_plan(
-    bbox_min_m: ArrayLike,
-    bbox_max_m: ArrayLike,
-    *,
-    fov_width_m: float,
-    overlap: float,
-    standoff_m: float,
-    table_angles_deg: Sequence[float | None] = (None,),
-    tilts_deg: Sequence[float] = (0.0,),
-    yaw_deg: float = 0.0,
-    frame: Literal["base", "part"] = "part",
-    depth_range_m: tuple[float, float] | None = None,
-    speed_m_s: float = 0.04,
-    travel_speed_m_s: float = 0.15,
-    retract_m: float = 0.03,
-    margin_m: float = 0.003,
-    crop_margin_m: float = 0.002,
-    name: str = "",
-) -> ScanPlan:
-    """Linear passes covering the box ``bbox_min_m .. bbox_max_m`` (plan frame, m).
-
-    For each table angle and each view (``tilt`` about the pass direction, degrees; the pass
-    direction is ``yaw_deg`` in the *base* frame, so that turning the table shows the sensor
-    other faces of the part), strips as :func:`strip_layout` lays them, run in alternate
-    directions. In the part frame the view at table angle ``theta`` is yawed by ``-theta``:
-    the robot keeps its orientation and the part turns under it (the table axis is the part
-    frame's Z). ``depth_range_m``: the sensor's measuring range (m); the box must fit in it at
-    the standoff. Raises :class:`PlanError` for an impossible request.
-    """
-    lo = np.asarray(bbox_min_m, dtype=np.float64)
-    hi = np.asarray(bbox_max_m, dtype=np.float64)
-    if lo.shape != (3,) or hi.shape != (3,) or np.any(hi <= lo):
-        raise PlanError("bbox: give min and max corners (3 values each) with min < max")
-    if not 0.0 < fov_width_m <= 2.0:
-        raise PlanError(f"fov width must be in (0, 2] m, got {fov_width_m}")
-    if not 0.0 <= overlap < 0.95:
-        raise PlanError(f"overlap must be a fraction in [0, 0.95), got {overlap}")
-    if standoff_m <= 0.0:
-        raise PlanError(f"standoff must be positive, got {standoff_m}")
-    if frame == "base" and any(a is not None for a in table_angles_deg):
-        # Base-frame passes do not follow the part: turning the table would move it away.
-        raise PlanError("table angles need a part-frame plan (frame = part)")
-    if not tilts_deg:
-        raise PlanError("give at least one view (tilt)")
-    passes: list[LinearPass] = []
-    overlaps: list[float] = []
-    forward = True
-    for theta in table_angles_deg:
-        part_yaw = yaw_deg - (theta or 0.0) if frame == "part" else yaw_deg
-        for tilt in tilts_deg:
-            o = Orientation(yaw_deg=_wrap_deg(part_yaw), tilt_deg=float(tilt))
-            R = o.matrix()
-            lay = strip_layout(
-                R,
-                lo,
-                hi,
-                fov_width_m=fov_width_m,
-                overlap=overlap,
-                standoff_m=standoff_m,
-                margin_m=margin_m,
-            )
-            if depth_range_m is not None:
-                near, far = lay.depth_span_m
-                if near < depth_range_m[0] or far > depth_range_m[1]:
-                    raise PlanError(
-                        f"view tilt {tilt:g} deg: the box spans {near * 1e3:.1f} .. "
-                        f"{far * 1e3:.1f} mm from the sensor at standoff {standoff_m * 1e3:g} mm,"
-                        f" outside the measuring range {depth_range_m[0] * 1e3:g} .. "
-                        f"{depth_range_m[1] * 1e3:g} mm (smaller box, other standoff or tilt)"
-                    )
-            overlaps.append(lay.overlap_fraction)
-            for k, v in enumerate(lay.centres_v_m):
-                ua, ub = lay.u_range_m if forward else lay.u_range_m[::-1]
-                forward = not forward
-                start = R @ np.array([ua, v, lay.depth_m])
-                end = R @ np.array([ub, v, lay.depth_m])
-                where = "" if theta is None else f"table {theta:g} deg, "
-                passes.append(
-                    LinearPass(
-                        kind="linear",
-                        label=f"{where}tilt {tilt:g} deg, strip {k + 1}/{lay.centres_v_m.size}",
-                        start_m=_vec3(start),
-                        end_m=_vec3(end),
-                        orientation=o,
-                        table_deg=None if theta is None else float(theta),
-                    )
-                )
-    gen = {
-        "bbox_min_m": [float(x) for x in lo],
-        "bbox_max_m": [float(x) for x in hi],
-        "fov_width_m": float(fov_width_m),
-        "overlap": float(overlap),
-        "standoff_m": float(standoff_m),
-        "tilts_deg": [float(t) for t in tilts_deg],
-        "yaw_deg": float(yaw_deg),
-        "table_angles_deg": [float(a) for a in table_angles_deg if a is not None],
-        "min_overlap": round(float(min(overlaps)), 6),
-    }
-    if depth_range_m is not None:
-        gen["depth_range_m"] = [float(depth_range_m[0]), float(depth_range_m[1])]
-    try:
-        return ScanPlan(
-            name=name,
-            frame=frame,
-            speed_m_s=speed_m_s,
-            travel_speed_m_s=travel_speed_m_s,
-            retract_m=retract_m,
-            crop=Crop(min_m=_vec3(lo - crop_margin_m), max_m=_vec3(hi + crop_margin_m)),
-            passes=list(passes),
-            generator=gen,
-        )
-    except ValidationError as exc:
-        raise PlanError("\n".join(_problem_lines(exc, "generated plan"))) from None
-
-
-def _wrap_deg(a: float) -> float:
-    w = (a + 180.0) % 360.0 - 180.0
-    return 0.0 if abs(w) < 1e-12 else float(w)
-
-
-def _vec3(a: Iterable[float]) -> Vec3:
-    x, y, z = (round(float(v), 9) for v in a)
-    return (x, y, z)
 
 
 # --------------------------------------------------------------------------------------------

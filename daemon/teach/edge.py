@@ -30,43 +30,54 @@ The stop-and-go loop keeps the guidance simple and its timing irrelevant: the ac
 path comes from the pairing of every profile with the robot pose, not from the controller. At the
 default 2 mm step, 20 mm/s and 30 ms of stillness it learns some 3-6 mm of edge per second.
 
-Output (:func:`write_edge_path`): JSON with the resampled points, tangents and normals in the base
-frame, the arc length, the raw points, the edge model and the statistics.
+Output (:func:`~.edge_path.write_edge_path`, in :mod:`.edge_path` with the result and the
+reading back): JSON with the resampled points, tangents and normals in the base frame, the arc
+length, the raw points, the edge model and the statistics. The edge model and its detection in
+the profiles are in :mod:`.edge_model`.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import time
-from dataclasses import dataclass, field, replace
-from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 
 from wristscan.calib import se3
-from wristscan.calib.edge import EdgeDetection, EdgeModel, EdgePath, detect_edge, smooth_path
+from wristscan.calib.edge import EdgeDetection, EdgeModel, smooth_path
 from wristscan.daemon.calibrate.table import Progress, no_progress
 from wristscan.daemon.config import Config
-from wristscan.daemon.io.atomic import write_atomic
 from wristscan.daemon.procedure.in_force import load_sensor_calibration
 from wristscan.daemon.procedure.motion import require_motion
-from wristscan.daemon.teach.plane import Mover, TeachError, guarded, record_still, teach_acquisition
+from wristscan.daemon.teach.edge_model import (
+    RawEdge,
+    detections_from_sweep,
+    model_toml,
+    teach_edge_model,
+)
+from wristscan.daemon.teach.edge_path import (
+    EdgeResult,
+    LearnedPath,
+    PathFileError,
+    read_edge_path,
+    write_edge_path,
+)
+from wristscan.daemon.teach.kit import Mover, TeachError, guarded, record_still, teach_acquisition
 
 if TYPE_CHECKING:
     from wristscan.daemon.procedure.acquisition import Acquisition, Sweep
+
+# TODO(lead): daemon/cli/teach.py still imports the path file and model names from here; their
+# homes are .edge_path and .edge_model.
 __all__ = [
     "EdgeOptions",
-    "EdgeResult",
     "LearnedPath",
     "PathFileError",
-    "RawEdge",
-    "detections_from_sweep",
     "learn_edge",
-    "model_from_sweep",
     "model_toml",
     "read_edge_path",
     "teach_edge_model",
@@ -77,13 +88,7 @@ log = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
 
-PATH_FORMAT = "wristscan-edge-path"
-PATH_VERSION = 1
 _STEP_TRIES = 3
-
-
-class PathFileError(ValueError):
-    """A path file that cannot be read."""
 
 
 @dataclass(frozen=True)
@@ -125,165 +130,6 @@ class EdgeOptions:
             raise ValueError("max_turn_deg must be in (0, 45]")
         if self.step_m > 0.02:
             raise ValueError("step_m must be at most 20 mm (the edge could leave the view)")
-
-
-@dataclass
-class RawEdge:
-    """Edge points found in single profiles (base frame), in acquisition order."""
-
-    points: list[FloatArray] = field(default_factory=list)
-    normals: list[FloatArray] = field(default_factory=list)
-    """Surface normals measured in the laser plane (towards the sensor)."""
-    view_x: list[FloatArray] = field(default_factory=list)
-    """The sensor's X axis (normal to the laser plane) for each point."""
-    confidence: list[float] = field(default_factory=list)
-    t_ns: list[int] = field(default_factory=list)
-
-    def truncate(self, n: int) -> None:
-        """Keep the first ``n`` points."""
-        for lst in (self.points, self.normals, self.view_x, self.confidence, self.t_ns):
-            del lst[n:]
-
-    def extend(self, other: RawEdge) -> None:
-        self.points += other.points
-        self.normals += other.normals
-        self.view_x += other.view_x
-        self.confidence += other.confidence
-        self.t_ns += other.t_ns
-
-    def __len__(self) -> int:
-        return len(self.points)
-
-    def arrays(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-        return (
-            np.asarray(self.points, dtype=np.float64).reshape(-1, 3),
-            np.asarray(self.normals, dtype=np.float64).reshape(-1, 3),
-            np.asarray(self.view_x, dtype=np.float64).reshape(-1, 3),
-            np.asarray(self.confidence, dtype=np.float64),
-        )
-
-
-def detections_from_sweep(
-    sweep: Sweep,
-    sensor2flange: ArrayLike,
-    model: EdgeModel,
-    *,
-    min_spacing_m: float = 0.0,
-    last: int = 3,
-    prior_y: float | None = 0.0,
-) -> tuple[RawEdge, list[EdgeDetection]]:
-    """Detect the edge in the profiles of ``sweep``: those whose sensor origin moved at least
-    ``min_spacing_m`` since the previous one used, plus the ``last`` ones. Returns the found
-    points in the base frame and the detections of the ``last`` profiles (found or not)."""
-    s2f = np.asarray(sensor2flange, dtype=np.float64)
-    raw = RawEdge()
-    n = sweep.n_profiles
-    if n == 0:
-        return raw, []
-    s2b = sweep.flange2base @ s2f
-    order = np.argsort(sweep.profile_index, kind="stable")
-    pidx = sweep.profile_index[order]
-    starts = np.searchsorted(pidx, np.arange(n + 1))
-    chosen: list[int] = []
-    last_pos: FloatArray | None = None
-    for i in range(n):
-        pos = s2b[i, :3, 3]
-        if last_pos is None or float(np.linalg.norm(pos - last_pos)) >= min_spacing_m:
-            chosen.append(i)
-            last_pos = pos
-    tail = list(range(max(0, n - last), n))
-    chosen = sorted(set(chosen) | set(tail))
-    tail_dets: list[EdgeDetection] = []
-    prior = prior_y
-    for i in chosen:
-        sel = order[starts[i] : starts[i + 1]]
-        det = detect_edge(sweep.y[sel], sweep.z[sel], sweep.valid[sel], model, prior_y=prior)
-        if i in tail:
-            tail_dets.append(det)
-        if not det.found:
-            continue
-        prior = float(det.point[0])
-        T = s2b[i]
-        R = T[:3, :3]
-        raw.points.append(np.asarray(T[:3, 3] + R[:, 1] * det.point[0] + R[:, 2] * det.point[1]))
-        raw.normals.append(np.asarray(R[:, 1] * det.normal[0] + R[:, 2] * det.normal[1]))
-        raw.view_x.append(np.asarray(R[:, 0]).copy())
-        raw.confidence.append(det.confidence)
-        raw.t_ns.append(int(sweep.exposure_ns[i]))
-    return raw, tail_dets
-
-
-def model_from_sweep(
-    sweep: Sweep,
-    kind: str,
-    *,
-    height_tolerance: float = 0.3,
-    angle_tolerance_deg: float = 15.0,
-    min_confidence: float = 0.6,
-) -> EdgeModel:
-    """Teach an edge model from still profiles of an example edge: the edge of ``kind`` is
-    looked for with wide ranges, and the model keeps what was seen - the step height within
-    ``+-height_tolerance`` (relative), the included angle within ``+-angle_tolerance_deg``, the
-    side of the upper face. Raises :class:`~.teach_plane.TeachError` when no such edge is seen
-    in most profiles."""
-    loose = EdgeModel(
-        kind,  # type: ignore[arg-type]
-        height_m=(0.0003, 0.3),
-        angle_deg=(5.0, 175.0),
-        face_angle_deg=60.0,
-        min_confidence=0.3,
-    )
-    order = np.argsort(sweep.profile_index, kind="stable")
-    pidx = sweep.profile_index[order]
-    starts = np.searchsorted(pidx, np.arange(sweep.n_profiles + 1))
-    dets = []
-    for i in range(sweep.n_profiles):
-        sel = order[starts[i] : starts[i + 1]]
-        dets.append(detect_edge(sweep.y[sel], sweep.z[sel], sweep.valid[sel], loose))
-    found = [d for d in dets if d.found]
-    if len(found) < max(3, len(dets) // 2):
-        why = next((d.reason for d in dets if not d.found and d.reason), "")
-        raise TeachError(
-            f"no clear {kind} edge in view ({len(found)} of {len(dets)} profiles; {why}): place "
-            "the laser line across the example edge"
-        )
-    kw: dict[str, Any] = {"kind": kind, "min_confidence": min_confidence}
-    heights = np.array([d.height_m for d in found])
-    if np.isfinite(heights).sum() >= len(found) // 2 + 1:
-        h = float(np.nanmedian(heights))
-        kw["height_m"] = (h * (1 - height_tolerance), h * (1 + height_tolerance))
-    elif kind == "step":
-        kw["height_m"] = (0.001, 0.3)  # the lower face out of range: any height
-    if kind in ("v_groove", "outer_corner"):
-        a = float(np.median([d.angle_deg for d in found]))
-        kw["angle_deg"] = (max(0.0, a - angle_tolerance_deg), min(180.0, a + angle_tolerance_deg))
-    sides = [d.side for d in found if d.side]
-    if sides:
-        kw["side"] = max(set(sides), key=sides.count)
-    return EdgeModel(**kw)
-
-
-def model_toml(model: EdgeModel) -> str:
-    """The model as an ``[edge]`` TOML table (the file ``teach edge`` reads)."""
-    lines = ["[edge]"]
-    for k, v in model.to_dict().items():
-        if isinstance(v, str):
-            lines.append(f'{k} = "{v}"')
-        elif isinstance(v, bool):
-            lines.append(f"{k} = {'true' if v else 'false'}")
-        elif isinstance(v, list):
-            lines.append(f"{k} = [{', '.join(repr(float(x)) for x in v)}]")
-        else:
-            lines.append(f"{k} = {v!r}")
-    return "\n".join(lines) + "\n"
-
-
-def teach_edge_model(cfg: Config, kind: str, dwell_s: float = 0.2) -> EdgeModel:
-    """Teach the edge model from the example edge under the sensor (nothing moves; the model
-    lives in the laser plane, so no calibration is needed)."""
-    with teach_acquisition(cfg) as acq:
-        sweep = record_still(acq, dwell_s, 0.0)
-    return model_from_sweep(sweep, kind)
 
 
 def _rotate_towards(a: FloatArray, b: FloatArray, max_rad: float) -> FloatArray:
@@ -364,77 +210,6 @@ def _sensor_pose(
     return np.asarray(se3.make(np.column_stack([x, np.cross(z, x), z]), point - standoff * z))
 
 
-@dataclass(frozen=True)
-class EdgeResult:
-    path: EdgePath
-    model: EdgeModel
-    raw_points: FloatArray
-    raw_normals: FloatArray
-    """Normals measured in the laser plane (base frame)."""
-    raw_view_x: FloatArray
-    """The sensor's X axis at each raw point (base frame)."""
-    raw_confidence: FloatArray
-    steps: int
-    lost_steps: int
-    end_reason: str
-    closed: bool
-    standoff_m: float
-    duration_s: float
-    sensor_calibration: str = ""
-
-    def summary_lines(self) -> list[str]:
-        p = self.path
-        return [
-            f"edge path     {p.points.shape[0]} points every {p.resolution_m * 1e3:g} mm over "
-            f"{p.length_m * 1e3:.1f} mm ({self.model.kind}; {self.end_reason})",
-            f"  raw         {self.raw_points.shape[0]} edge points from {self.steps} steps "
-            f"({self.lost_steps} without the edge), mean confidence "
-            f"{float(np.mean(self.raw_confidence)):.2f}",
-            f"  smoothing   raw points within {p.residual_rms_m * 1e6:.1f} um RMS of the path; "
-            f"largest gap between them {p.max_gap_m * 1e3:.2f} mm",
-            "  ends        "
-            + " ".join(f"{v * 1e3:.3f}" for v in p.points[0])
-            + " -> "
-            + " ".join(f"{v * 1e3:.3f}" for v in p.points[-1])
-            + " mm (base)",
-            f"  guidance    standoff {self.standoff_m * 1e3:.1f} mm, {self.duration_s:.1f} s",
-        ]
-
-    def to_dict(self, cfg: Config | None = None) -> dict[str, Any]:
-        p = self.path
-        return {
-            "format": PATH_FORMAT,
-            "version": PATH_VERSION,
-            "frame": "base",
-            "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-            "robot": None if cfg is None else cfg.robot.model,
-            "sensor_calibration": self.sensor_calibration,
-            "edge_model": self.model.to_dict(),
-            "resolution_m": p.resolution_m,
-            "length_m": p.length_m,
-            "closed": self.closed,
-            "end_reason": self.end_reason,
-            "points_m": p.points.tolist(),
-            "tangents": p.tangents.tolist(),
-            "normals": p.normals.tolist(),
-            "s_m": p.s.tolist(),
-            "stats": {
-                "residual_rms_m": p.residual_rms_m,
-                "max_gap_m": p.max_gap_m,
-                "raw_points": int(self.raw_points.shape[0]),
-                "mean_confidence": float(np.mean(self.raw_confidence)),
-                "steps": self.steps,
-                "lost_steps": self.lost_steps,
-                "standoff_m": self.standoff_m,
-                "duration_s": self.duration_s,
-            },
-            "raw_points_m": self.raw_points.tolist(),
-            "raw_normals": self.raw_normals.tolist(),
-            "raw_view_x": self.raw_view_x.tolist(),
-            "raw_confidence": self.raw_confidence.tolist(),
-        }
-
-
 def learn_edge(
     cfg: Config,
     model: EdgeModel,
@@ -445,9 +220,9 @@ def learn_edge(
 ) -> EdgeResult:
     """Follow and learn the edge on the devices of ``cfg`` (see the module doc).
 
-    Raises :class:`~.calib_table.MotionNotConfirmed` before anything moves,
-    :class:`~.teach_plane.TeachError` when the edge is not in view at the start or too little
-    of it was learned, :class:`~.teach_plane.TeachAborted` when the run stopped part way.
+    Raises :class:`~wristscan.daemon.procedure.errors.MotionNotConfirmed` before anything
+    moves, :class:`~.kit.TeachError` when the edge is not in view at the start or too little
+    of it was learned, :class:`~.kit.TeachAborted` when the run stopped part way.
     """
     opts = options or EdgeOptions()
     require_motion(cfg, confirmed)
@@ -654,65 +429,3 @@ class _Follower:
         ):
             self.closed = True
             self.reason = "closed contour: back at the start"
-
-
-def write_edge_path(path: str | Path, result: EdgeResult, cfg: Config | None = None) -> Path:
-    """Write the learned path (JSON, atomically)."""
-    return write_atomic(path, json.dumps(result.to_dict(cfg)) + "\n")
-
-
-@dataclass(frozen=True)
-class LearnedPath:
-    """A learned edge path read back (base frame, metres)."""
-
-    points: FloatArray
-    tangents: FloatArray
-    normals: FloatArray
-    resolution_m: float
-    closed: bool = False
-    source: str = ""
-    robot: str | None = None
-    """The robot model the path was learned with (for reachability checks)."""
-
-
-def read_edge_path(path: str | Path) -> LearnedPath:
-    """Read a path file of :func:`write_edge_path`; :class:`PathFileError` when it is not
-    one."""
-    try:
-        doc = json.loads(Path(path).read_text(encoding="utf-8"))
-    except json.JSONDecodeError as exc:
-        raise PathFileError(f"not JSON: {exc}") from None
-    if not isinstance(doc, dict) or doc.get("format") != PATH_FORMAT:
-        raise PathFileError("not a wristscan edge path file")
-    if doc.get("version") != PATH_VERSION:
-        raise PathFileError(f"unsupported version {doc.get('version')!r}")
-    try:
-        pts = np.asarray(doc["points_m"], dtype=np.float64)
-        tan = np.asarray(doc["tangents"], dtype=np.float64)
-        nrm = np.asarray(doc["normals"], dtype=np.float64)
-        res = float(doc["resolution_m"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise PathFileError(f"missing or bad field: {exc}") from None
-    n = pts.shape[0]
-    if (
-        pts.ndim != 2
-        or pts.shape[1] != 3
-        or n < 2
-        or tan.shape != pts.shape
-        or nrm.shape != pts.shape
-    ):
-        raise PathFileError("points_m, tangents and normals must be (N >= 2, 3) arrays")
-    if not (np.all(np.isfinite(pts)) and np.all(np.isfinite(tan)) and np.all(np.isfinite(nrm))):
-        raise PathFileError("the path holds non-finite values")
-    if np.any(np.abs(np.linalg.norm(nrm, axis=1) - 1) > 1e-6):
-        raise PathFileError("the normals must be unit vectors")
-    robot = doc.get("robot")
-    return LearnedPath(
-        pts,
-        tan,
-        nrm,
-        res,
-        bool(doc.get("closed", False)),
-        str(path),
-        robot if isinstance(robot, str) else None,
-    )

@@ -1,5 +1,6 @@
-"""Plane frame teaching (``wristscan teach plane``) and distance sensing (``wristscan measure``)
-with the calibrated sensor (Borangiu et al. 2009, section 5).
+"""Plane frame teaching (``wristscan teach plane``) with the calibrated sensor (Borangiu et al.
+2009, section 5). Distance sensing (``wristscan measure``), which it starts with, is in
+:mod:`.measure`; the machinery every teaching procedure shares in :mod:`.kit`.
 
 Plane teaching
 --------------
@@ -24,17 +25,9 @@ feature on the teach pendant. The fit statistics (residual RMS, peak-to-valley, 
 without the noise, the normal's 1-sigma) say whether the surface was flat enough: with a form
 error above ``max_form_error_m`` nothing is written and the procedure fails.
 
-Distance sensing
-----------------
-:func:`measure` records still profiles (or, with ``sweep_m``, a short move along the sensor's X
-axis) and reports the standoff (distance along the sensor's Z axis to the surface at the middle
-of the laser line), the surface normal under the sensor (the in-plane tilt only from a still
-profile: the component along X needs the sweep), the surface point in the base frame, and the
-sensor pose that would look at that point along the normal from a chosen standoff.
-
 Safety as in the calibration procedures: no motion unless ``[robot] motion_enabled`` and
 confirmed; speeds capped by the configuration; the driver refuses targets outside the workspace
-box; any failure while moving stops the robot and raises :class:`TeachAborted`.
+box; any failure while moving stops the robot and raises :class:`~.kit.TeachAborted`.
 """
 
 from __future__ import annotations
@@ -43,37 +36,41 @@ import json
 import logging
 import math
 import time
-from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 
 from wristscan.calib import se3
-from wristscan.calib.plane import PlaneFit, fit_hyperplane, fit_plane, plane_frame
+from wristscan.calib.plane import PlaneFit, fit_plane, plane_frame
 from wristscan.daemon.calibrate.table import Progress, no_progress
 from wristscan.daemon.config import Config
 from wristscan.daemon.io.atomic import write_atomic
 from wristscan.daemon.io.urpose import ur_pose_text
-from wristscan.daemon.procedure.errors import ProcedureAborted, ProcedureError
-from wristscan.daemon.procedure.in_force import load_sensor_calibration, procedure_acquisition
-from wristscan.daemon.procedure.motion import guarded_motion, require_motion
+from wristscan.daemon.procedure.in_force import load_sensor_calibration
+from wristscan.daemon.procedure.motion import require_motion
+from wristscan.daemon.teach.kit import (
+    Mover,
+    TeachError,
+    guarded,
+    mean_pose,
+    points_in_base,
+    record_still,
+    teach_acquisition,
+)
+from wristscan.daemon.teach.measure import MIN_SURFACE_POINTS, measure, measure_surface
 
 if TYPE_CHECKING:
-    from wristscan.daemon.procedure.acquisition import Acquisition, Sweep
+    from wristscan.daemon.procedure.acquisition import Sweep
+
 __all__ = [
     "PlaneOptions",
     "PlaneResult",
     "Spot",
-    "SurfaceMeasurement",
-    "TeachAborted",
-    "TeachError",
-    "measure",
-    "measure_surface",
+    "measure",  # TODO(lead): daemon/cli/teach.py imports it from here; its home is .measure
     "plane_from_spots",
-    "points_in_base",
     "read_plane_frame",
     "teach_plane",
     "write_plane_frame",
@@ -85,260 +82,7 @@ FloatArray = NDArray[np.float64]
 
 FRAME_FORMAT = "wristscan-plane-frame"
 FRAME_VERSION = 1
-_MIN_SPOT_POINTS = 50
 _MAX_DEPTH_CORRECTION = 2.0  # times the spacing
-
-
-class TeachError(ProcedureError):
-    """A teaching procedure cannot run or failed; the message tells the operator why."""
-
-
-class TeachAborted(TeachError, ProcedureAborted):
-    """Stopped part way (protective stop, refused move, lost device, Ctrl-C); the robot was
-    stopped and nothing was written."""
-
-
-# --------------------------------------------------------------------------------------------
-# Shared machinery of the teaching procedures
-
-
-def points_in_base(
-    sweep: Sweep, sensor2flange: ArrayLike, max_points: int | None = None, seed: int = 0
-) -> tuple[FloatArray, NDArray[np.int64]]:
-    """Valid points of ``sweep`` in the base frame ``(M, 3)`` and their profile index ``(M,)``
-    (a seeded random subset of at most ``max_points``)."""
-    m = sweep.valid & np.isfinite(sweep.y) & np.isfinite(sweep.z)
-    prof = sweep.profile_index[m]
-    y, z = sweep.y[m], sweep.z[m]
-    if max_points is not None and prof.size > max_points:
-        keep = np.sort(np.random.default_rng(seed).choice(prof.size, max_points, replace=False))
-        prof, y, z = prof[keep], y[keep], z[keep]
-    s2b = sweep.flange2base @ np.asarray(sensor2flange, dtype=np.float64)
-    R = s2b[prof, :3, :3]
-    pts = R[:, :, 1] * y[:, None] + R[:, :, 2] * z[:, None] + s2b[prof, :3, 3]
-    return np.asarray(pts, dtype=np.float64), np.asarray(prof, dtype=np.int64)
-
-
-def mean_pose(T: FloatArray) -> FloatArray:
-    """Average of nearby poses ``(P, 4, 4)`` (mean translation, rotation of the mean matrix
-    projected back onto SO(3))."""
-    if T.shape[0] == 0:
-        raise ValueError("no poses to average")
-    R = T[:, :3, :3].mean(axis=0)
-    U, _, Vt = np.linalg.svd(R)
-    Rm = U @ Vt
-    if np.linalg.det(Rm) < 0:
-        U[:, -1] *= -1
-        Rm = U @ Vt
-    return np.asarray(se3.make(Rm, T[:, :3, 3].mean(axis=0)))
-
-
-class Mover:
-    """Moves the sensor to poses in the base frame through the robot's TCP; records still
-    profiles. Everything goes through an open :class:`Acquisition`."""
-
-    def __init__(self, acq: Acquisition, sensor2flange: ArrayLike, speed_m_s: float) -> None:
-        self.acq = acq
-        self.robot = acq.robot
-        self.s2f = np.asarray(sensor2flange, dtype=np.float64)
-        self.f2s = se3.invert(self.s2f)
-        r = acq.cfg.robot
-        self.speed = min(float(speed_m_s), float(r.max_speed_m_s))
-        self.accel = float(r.max_accel_m_s2)
-        self.tcp2flange = se3.pose_to_matrix(np.asarray(self.robot.tcp_offset(), dtype=float))
-
-    def tcp_pose(self, sensor2base: ArrayLike) -> FloatArray:
-        """UR pose of the TCP that puts the sensor at ``sensor2base``."""
-        return np.asarray(se3.matrix_to_pose(np.asarray(sensor2base) @ self.f2s @ self.tcp2flange))
-
-    def move_sensor(self, sensor2base: ArrayLike, speed_m_s: float | None = None) -> None:
-        speed = self.speed if speed_m_s is None else min(float(speed_m_s), self.speed)
-        self.robot.move_l(self.tcp_pose(sensor2base), speed, self.accel)
-
-
-def teach_acquisition(
-    cfg: Config, acquisition: Acquisition | None = None
-) -> AbstractContextManager[Acquisition]:
-    """:func:`~.calib_table.procedure_acquisition` for the teaching procedures: a device that
-    does not answer in time is tried again (a controller busy starting up); a device failure
-    becomes a :class:`TeachError`."""
-    return procedure_acquisition(cfg, acquisition, attempts=3, open_error=TeachError)
-
-
-def record_still(acq: Acquisition, dwell_s: float, settle_s: float = 0.05) -> Sweep:
-    """Profiles recorded for ``dwell_s`` while the robot stands still (after ``settle_s``)."""
-    time.sleep(settle_s)
-    with acq.record() as rec:
-        time.sleep(dwell_s)
-    sweep = rec.result()
-    if sweep.n_profiles == 0:
-        raise TeachError(
-            "no profile was paired with a robot pose while standing still (wristscan run -v "
-            "shows the synchroniser's counters)"
-        )
-    return sweep
-
-
-def guarded(acq: Acquisition, what: str) -> AbstractContextManager[None]:
-    """The procedures' guard for teaching: stop the robot when anything goes wrong inside the
-    block; driver errors, Ctrl-C and a failed fit (ValueError) while moving become
-    :class:`TeachAborted` (the table is not used here)."""
-    return guarded_motion(
-        acq,
-        what,
-        error=TeachAborted,
-        also=(ValueError,),
-        consequence="the robot was stopped",
-        table=False,
-    )
-
-
-# --------------------------------------------------------------------------------------------
-# Distance sensing
-
-
-@dataclass(frozen=True)
-class SurfaceMeasurement:
-    """The surface under the sensor (SI units; base frame unless named ``_sensor``)."""
-
-    standoff_m: float
-    """Distance along the sensor's Z axis to the surface (at the middle of the laser line)."""
-    point: FloatArray
-    """(3,) that surface point."""
-    normal: FloatArray
-    """(3,) unit surface normal, towards the sensor."""
-    normal_sensor: FloatArray
-    """(3,) the same in the sensor frame."""
-    full_normal: bool
-    """False for a still measurement: the normal's component along the sensor's X axis is not
-    observed (the normal is the one in the laser plane)."""
-    incidence_deg: float
-    """Angle between the sensor's Z axis and the normal (0: looking straight at the surface)."""
-    rms_m: float
-    n_points: int
-    n_profiles: int
-    sensor2base: FloatArray
-    """(4, 4) sensor pose (the mean over the profiles used)."""
-
-    def normal_view(self, standoff_m: float | None = None) -> FloatArray:
-        """``sensor2base`` looking at :attr:`point` along the normal from ``standoff_m``
-        (default: the current standoff), its X axis as close to the current one as possible."""
-        d = self.standoff_m if standoff_m is None else float(standoff_m)
-        z = -self.normal
-        x0 = self.sensor2base[:3, 0]
-        x = x0 - (x0 @ z) * z
-        if np.linalg.norm(x) < 1e-6:
-            x = self.sensor2base[:3, 1] - (self.sensor2base[:3, 1] @ z) * z
-        x = x / np.linalg.norm(x)
-        return np.asarray(se3.make(np.column_stack([x, np.cross(z, x), z]), self.point - d * z))
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "standoff_m": self.standoff_m,
-            "point_m": self.point.tolist(),
-            "normal": self.normal.tolist(),
-            "normal_sensor": self.normal_sensor.tolist(),
-            "full_normal": self.full_normal,
-            "incidence_deg": self.incidence_deg,
-            "rms_m": self.rms_m,
-            "n_points": self.n_points,
-            "n_profiles": self.n_profiles,
-            "sensor2base": self.sensor2base.tolist(),
-            "sensor_pose_ur": se3.matrix_to_pose(self.sensor2base).tolist(),
-        }
-
-
-def measure_surface(
-    sweep: Sweep,
-    sensor2flange: ArrayLike,
-    *,
-    swept: bool = False,
-    max_points: int = 20_000,
-) -> SurfaceMeasurement:
-    """The surface under the sensor from ``sweep`` (see the module doc). ``swept``: the
-    profiles come from a move along the sensor's X axis, so the full normal is fitted (a plane);
-    otherwise a line in the laser plane. Raises :class:`TeachError` without enough points."""
-    s2f = np.asarray(sensor2flange, dtype=np.float64)
-    pts, prof = points_in_base(sweep, s2f, max_points)
-    if pts.shape[0] < _MIN_SPOT_POINTS:
-        raise TeachError(f"only {pts.shape[0]} valid points: no surface within the measuring range")
-    s2b_all = sweep.flange2base @ s2f
-    S = mean_pose(s2b_all[np.unique(prof)])
-    origin, zaxis = S[:3, 3], S[:3, 2]
-    if swept:
-        fit = fit_plane(pts)
-        n = np.asarray(fit.normal)
-        if float(n @ (origin - fit.point)) < 0:
-            n = -n
-        try:
-            point = fit.intersect_line(origin, zaxis)
-        except ValueError:
-            raise TeachError("the sensor's Z axis runs parallel to the surface") from None
-        rms, n_in = fit.rms, fit.n_inliers
-        n_s = S[:3, :3].T @ n
-    else:
-        local = (pts - origin) @ S[:3, :3]  # sensor frame: x ~ 0, (y, z) in the laser plane
-        line = fit_hyperplane(local[:, 1:3])
-        nl = np.asarray(line.normal)
-        if nl[1] > 0:
-            nl = -nl  # towards the sensor (negative z)
-        if abs(float(nl[1])) < 1e-9:
-            raise TeachError("the laser line runs along the sensor's Z axis: no surface")
-        z0 = line.offset / float(line.normal[1])
-        n_s = np.array([0.0, nl[0], nl[1]])
-        n = S[:3, :3] @ n_s
-        point = origin + z0 * zaxis
-        rms, n_in = line.rms, line.n_inliers
-    standoff = float((point - origin) @ zaxis)
-    incidence = math.degrees(math.acos(min(1.0, abs(float(n @ zaxis)))))
-    return SurfaceMeasurement(
-        standoff_m=standoff,
-        point=np.asarray(point, dtype=np.float64),
-        normal=np.asarray(n / np.linalg.norm(n), dtype=np.float64),
-        normal_sensor=np.asarray(n_s / np.linalg.norm(n_s), dtype=np.float64),
-        full_normal=swept,
-        incidence_deg=incidence,
-        rms_m=float(rms),
-        n_points=int(n_in),
-        n_profiles=int(np.unique(prof).size),
-        sensor2base=S,
-    )
-
-
-def measure(
-    cfg: Config,
-    *,
-    dwell_s: float = 0.2,
-    sweep_m: float = 0.0,
-    speed_m_s: float = 0.01,
-    confirmed: bool = False,
-    acquisition: Acquisition | None = None,
-) -> SurfaceMeasurement:
-    """Measure the surface under the sensor on the devices of ``cfg``. With ``sweep_m`` > 0 the
-    sensor moves ``+-sweep_m / 2`` along its X axis and back (needs motion enabled and
-    ``confirmed``); otherwise nothing moves. ``acquisition``: an already built one (tests),
-    opened if need be and closed at the end, as by the other procedures."""
-    if sweep_m > 0:
-        require_motion(cfg, confirmed)
-    calib = load_sensor_calibration(cfg)
-    s2f = np.asarray(calib.transform, dtype=np.float64)
-    with teach_acquisition(cfg, acquisition) as acq:
-        still = record_still(acq, dwell_s, settle_s=0.0)
-        if sweep_m <= 0:
-            return measure_surface(still, s2f)
-        with guarded(acq, "measurement sweep"):
-            mover = Mover(acq, s2f, speed_m_s)
-            S = mean_pose(still.flange2base @ s2f)
-            half = 0.5 * sweep_m * S[:3, 0]
-            start, end = S.copy(), S.copy()
-            start[:3, 3] -= half
-            end[:3, 3] += half
-            mover.move_sensor(start)
-            with acq.record() as rec:
-                mover.move_sensor(end, speed_m_s)
-            sweep = rec.result()
-            mover.move_sensor(S)
-        return measure_surface(sweep, s2f, swept=True)
 
 
 # --------------------------------------------------------------------------------------------
@@ -523,7 +267,7 @@ def plane_from_spots(
 
 def _spot(sweep: Sweep, s2f: FloatArray, max_points: int) -> Spot:
     pts, prof = points_in_base(sweep, s2f, max_points)
-    if pts.shape[0] < _MIN_SPOT_POINTS:
+    if pts.shape[0] < MIN_SURFACE_POINTS:
         raise TeachError(
             f"only {pts.shape[0]} valid points at a spot: the surface left the measuring range"
             " (use a smaller --spacing-mm or start closer to the middle of the range)"
@@ -541,7 +285,7 @@ def teach_plane(
 ) -> PlaneResult:
     """Run the plane-teaching procedure on the devices of ``cfg`` (module doc).
 
-    Raises :class:`~.calib_table.MotionNotConfirmed` before anything moves,
+    Raises :class:`~wristscan.daemon.procedure.errors.MotionNotConfirmed` before anything moves,
     :class:`TeachError` when it cannot run or the result is unusable, :class:`TeachAborted`
     when it stopped part way. The result may be not :attr:`~PlaneResult.flat`: the caller
     decides (the CLI writes nothing then)."""

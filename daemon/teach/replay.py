@@ -3,10 +3,10 @@
 change the tool transformation matrix to the one for the physical tool, and replay the learned
 path with high accuracy").
 
-The learned path (:mod:`.teach_edge`) is a list of edge points in the base frame with the edge
-tangent and the surface normal at each. For a tool - a dispenser, a deburring spindle, a torch,
-given by its tool transformation (the TCP as a UR pose in the flange frame) - each point becomes
-a TCP pose:
+The learned path (:mod:`.edge`, its file :mod:`.edge_path`) is a list of edge points in the base
+frame with the edge tangent and the surface normal at each. For a tool - a dispenser, a deburring
+spindle, a torch, given by its tool transformation (the TCP as a UR pose in the flange frame) - each
+point becomes a TCP pose:
 
 * the tool's Z axis points into the surface (``-normal``), its X axis along the path;
 * ``lead_rad`` tilts the tool about its Y axis (travel angle: positive leans the tool's tip
@@ -53,11 +53,11 @@ from wristscan.calib import kinematics, se3
 from wristscan.daemon.calibrate.table import Progress, no_progress
 from wristscan.daemon.config import Config
 from wristscan.daemon.io.atomic import write_atomic
-from wristscan.daemon.io.urpose import ur_pose_text
+from wristscan.daemon.io.urpose import parse_ur_pose, ur_pose_text
 from wristscan.daemon.procedure.errors import ProcedureError
 
 if TYPE_CHECKING:
-    from wristscan.daemon.teach.edge import LearnedPath
+    from wristscan.daemon.teach.edge_path import LearnedPath
 __all__ = [
     "ReplayError",
     "ReplayOptions",
@@ -65,7 +65,6 @@ __all__ = [
     "ToolDef",
     "dashboard_command",
     "load_tool",
-    "parse_ur_pose",
     "plan_replay",
     "run_program",
     "send_script",
@@ -91,22 +90,6 @@ class ReplayError(ProcedureError):
 
 # --------------------------------------------------------------------------------------------
 # Tools and options
-
-
-def parse_ur_pose(text: str) -> FloatArray:
-    """``"p[x, y, z, rx, ry, rz]"`` (or the bare list) as a (6,) array; ValueError otherwise."""
-    t = text.strip()
-    if t.startswith("p"):
-        t = t[1:].strip()
-    if not (t.startswith("[") and t.endswith("]")):
-        raise ValueError(f"not a UR pose p[x, y, z, rx, ry, rz]: {text!r}")
-    try:
-        values = [float(v) for v in t[1:-1].split(",")]
-    except ValueError:
-        raise ValueError(f"not a UR pose p[x, y, z, rx, ry, rz]: {text!r}") from None
-    if len(values) != 6 or not all(math.isfinite(v) for v in values):
-        raise ValueError(f"a UR pose needs 6 finite numbers, got {text!r}")
-    return np.asarray(values, dtype=np.float64)
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,7 @@ from typer.testing import CliRunner
 from wristscan.calib import se3
 from wristscan.calib.latency import estimate_latency
 from wristscan.calib.table import fit_table_axis
+from wristscan.daemon.calibrate.ball import ball_from_sweep
 from wristscan.daemon.calibrate.latency import (
     LatencyOptions,
     LatencyResult,
@@ -29,13 +30,12 @@ from wristscan.daemon.calibrate.table import (
     TableOptions,
     TableResult,
     _predict,
-    ball_from_sweep,
     calibrate_table,
     direction_cov,
     table_calibration,
-    table_report,
     tilt_sigma_deg,
 )
+from wristscan.daemon.calibrate.table_report import table_report
 from wristscan.daemon.cli.app import app
 from wristscan.daemon.config import Config, load_config, parse_config
 from wristscan.daemon.io.calibfile import (
@@ -211,7 +211,7 @@ def test_plan_has_bootstrap_steps_and_spans_the_turn() -> None:
 
 
 def _table_result(tmp_path: Path) -> TableResult:
-    from wristscan.daemon.calibrate.table import BallMeasurement
+    from wristscan.daemon.calibrate.ball import BallMeasurement
 
     C, ang = _circle(8, 0.2)
     axis = fit_table_axis(C, ang)
@@ -263,7 +263,7 @@ def test_table_file_and_report(tmp_path: Path) -> None:
 
 
 def test_latency_result_file_and_report(tmp_path: Path) -> None:
-    from wristscan.daemon.calibrate.table import BallMeasurement
+    from wristscan.daemon.calibrate.ball import BallMeasurement
 
     centre = np.array([0.4, -0.2, 0.16])
     sweeps = []

@@ -18,27 +18,19 @@ from wristscan.calib import kinematics, se3
 from wristscan.calib.edge import EdgeModel
 from wristscan.daemon.cli.app import app
 from wristscan.daemon.config import Config, load_config
+from wristscan.daemon.io.urpose import parse_ur_pose
 from wristscan.daemon.procedure.acquisition import Sweep
 from wristscan.daemon.simcell.cell import dump_toml, free_sim_config
 from wristscan.daemon.simcell.scenarios import cell_with_scene, write_truth_calibration
-from wristscan.daemon.teach.edge import (
-    EdgeOptions,
-    LearnedPath,
-    PathFileError,
-    detections_from_sweep,
-    read_edge_path,
-)
-from wristscan.daemon.teach.plane import (
-    Spot,
-    TeachError,
-    measure_surface,
-    plane_from_spots,
-    points_in_base,
-)
+from wristscan.daemon.teach.edge import EdgeOptions
+from wristscan.daemon.teach.edge_model import detections_from_sweep
+from wristscan.daemon.teach.edge_path import LearnedPath, PathFileError, read_edge_path
+from wristscan.daemon.teach.kit import TeachError, points_in_base
+from wristscan.daemon.teach.measure import measure_surface
+from wristscan.daemon.teach.plane import Spot, plane_from_spots
 from wristscan.daemon.teach.replay import (
     ReplayOptions,
     load_tool,
-    parse_ur_pose,
     plan_replay,
     simplify,
     tool_poses,
@@ -49,7 +41,9 @@ from wristscan.drivers.sim.cell import SimulatedCell
 from wristscan.drivers.sim.laser import LaserModel
 from wristscan.drivers.sim.scene import sensor_looking_down
 from wristscan.drivers.sim.scenes_apps import dome_scene, sensor_pose_at_edge, tilted_plate_scene
-from wristscan.drivers.sim.ur.controller import ControllerConfig, _Controller, parse_script
+from wristscan.drivers.sim.ur.controller import ControllerConfig
+from wristscan.drivers.sim.ur.engine import Controller as _Controller
+from wristscan.drivers.sim.ur.script import parse_script
 
 S2F = se3.pose_to_matrix([0.060, 0.010, 0.200, 0.020, -0.015, 0.010])
 
@@ -432,7 +426,7 @@ def test_teach_edge_and_replay_on_the_simulated_cell(tmp_path: Path) -> None:
 
 
 def test_edge_model_taught_from_an_example() -> None:
-    from wristscan.daemon.teach.edge import model_from_sweep, model_toml
+    from wristscan.daemon.teach.edge_model import model_from_sweep, model_toml
 
     scene, truth = dome_scene()
     T = sensor_pose_at_edge(truth, math.radians(200), 0.1)
