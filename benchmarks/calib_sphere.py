@@ -37,7 +37,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 from _report import Figure, report
 
-from wristscan.calib import sphere
+from wristscan.calib import sphere, sphere_algebra
 
 R = 12.7e-3  # m
 SIGMA = 0.1e-3  # m, per axis
@@ -141,8 +141,8 @@ def _timed(fn: Callable[[], object], times: list[float]) -> None:
 
 def _vector_iteration(U: np.ndarray, c: np.ndarray, rho: float, s: float) -> object:
     """The same iteration as the module runs it (its private helpers), on all points at once."""
-    r = sphere._residuals(U, c, rho)
-    return sphere._riemann(U, sphere._weights(r / s, "tukey"))
+    r = sphere_algebra.residuals(U, c, rho)
+    return sphere_algebra.riemann(U, sphere_algebra.weights(r / s, "tukey"))
 
 
 def speed() -> list[Figure]:

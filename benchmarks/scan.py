@@ -44,32 +44,21 @@ sys.path.insert(0, str(Path(__file__).parent))
 from _report import Figure, report
 
 from wristscan.calib import se3
+from wristscan.calib.merge import MergeOptions, corrected_clouds, merge_passes, voxel_mean
 from wristscan.daemon.config import load_config
-from wristscan.daemon.scan.job import (
-    MergeOptions,
-    ScanCalibration,
-    align_passes,
-    corrected_clouds,
-    merge_passes,
-    report_lines,
-    run_scan,
-    voxel_mean,
-)
-from wristscan.daemon.scan.plan import ScanPlan, describe_plan, down_matrix, generate_plan
+from wristscan.daemon.scan.job import ScanCalibration, align_passes, report_lines, run_scan
+from wristscan.daemon.scan.plan import describe_plan
+from wristscan.daemon.scan.plan_file import ScanPlan, down_matrix
+from wristscan.daemon.scan.plan_generate import generate_plan
 from wristscan.daemon.simcell.cell import (
     dump_toml,
     free_sim_config,
     start_cell,
     write_truth_calibrations,
 )
-from wristscan.drivers.sim.scene import (
-    Box,
-    Cylinder,
-    Primitive,
-    Scene,
-    TriangleMesh,
-    demo_scene,
-)
+from wristscan.drivers.sim.mesh import TriangleMesh
+from wristscan.drivers.sim.primitives import Primitive
+from wristscan.drivers.sim.scene import Box, Cylinder, Scene, demo_scene
 
 FloatArray = NDArray[np.float64]
 

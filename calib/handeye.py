@@ -35,22 +35,45 @@ Parameter order of every covariance returned here (``HandEyeResult.cov``, 6x6)::
 ``R_sf_true = R_sf_est @ exp(w)``), ``t`` the sensor origin in the flange frame (metres).
 ``HandEyeResult.cov_full`` continues with the ball centre in base ``c_x, c_y, c_z`` (metres) and,
 when the radius was estimated, the radius (metres).
+
+The data model is :mod:`wristscan.calib.handeye_model`, the point model (*) over all sweeps and
+its conditioning :mod:`wristscan.calib.handeye_points`, the steps of :func:`refine`
+:mod:`wristscan.calib.handeye_joint`; the public names are importable from here.
 """
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import least_squares
 
 from wristscan.calib import se3, sphere, tcp
+from wristscan.calib.handeye_joint import joint_result, rounds, start
+from wristscan.calib.handeye_model import (
+    HandEyeResult,
+    Identifiability,
+    OrientationSolution,
+    OriginSolution,
+    PoorlyConstrained,
+    Sweep,
+    check_radius,
+    check_sweeps,
+    translation_only,
+)
+from wristscan.calib.handeye_points import (
+    COND_HARD,
+    COND_SOFT,
+    PointStack,
+    identifiability,
+    skew,
+)
 
 __all__ = [
+    "COND_HARD",
+    "COND_SOFT",
     "HandEyeResult",
     "Identifiability",
     "OrientationSolution",
@@ -72,197 +95,12 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 BoolArray = NDArray[np.bool_]
 
-#: Condition number (column-equilibrated point Jacobian) above which a warning is logged. Good
-#: pose sets (>= 30 deg tilts about two axes) give 5-11; 15 deg tilts about 20.
-COND_SOFT = 15.0
-#: Condition number above which :class:`PoorlyConstrained` is raised: tilts of ~3 deg give 100,
-#: where 10 um of robot error already means millimetres of error along the weak axis.
-COND_HARD = 100.0
-
-_AXES = ("X", "Y", "Z")
 #: Step 1 refuses FOV ball centres whose second principal spread is below this share of the first.
 _MIN_FOV_SPREAD_RATIO = 0.1
 
 
-class PoorlyConstrained(ValueError):
-    """The sweeps do not pin down ``sensor2flange``; ``advice`` says which data to add."""
-
-    def __init__(self, message: str, advice: str = "", condition: float = float("nan")) -> None:
-        super().__init__(f"{message}; {advice}" if advice else message)
-        self.advice = advice
-        self.condition = condition
-
-
-# --------------------------------------------------------------------------------------------
-# Data model
-
-
-@dataclass(frozen=True, eq=False)
-class Sweep:
-    """One ball-matching pass.
-
-    Attributes:
-        flange2base: ``(P, 4, 4)`` flange pose at each profile instant (metres).
-        points_sensor: ``(N, 3)`` profile points in the sensor frame (metres); ``x`` is 0 for a
-            laser-plane point ``(0, y, z)``.
-        pose_index: ``(N,)`` index into ``flange2base`` of the profile each point belongs to.
-    """
-
-    flange2base: FloatArray
-    points_sensor: FloatArray
-    pose_index: IntArray
-
-    def __post_init__(self) -> None:
-        F = se3.check_transform(np.asarray(self.flange2base, dtype=np.float64), "flange2base")
-        if F.ndim != 3:
-            raise ValueError(f"flange2base: expected (P, 4, 4), got {F.shape}")
-        p = np.asarray(self.points_sensor, dtype=np.float64)
-        if p.ndim != 2 or p.shape[1] != 3:
-            raise ValueError(f"points_sensor: expected (N, 3), got {p.shape}")
-        if not np.all(np.isfinite(p)):
-            raise ValueError("points_sensor: contains NaN or infinity")
-        idx = np.asarray(self.pose_index)
-        if idx.shape != (p.shape[0],) or (idx.size and not np.issubdtype(idx.dtype, np.integer)):
-            raise ValueError(f"pose_index: expected ({p.shape[0]},) integers, got {idx.shape}")
-        idx = idx.astype(np.intp)
-        if idx.size and (idx.min() < 0 or idx.max() >= F.shape[0]):
-            raise ValueError(f"pose_index: out of range for {F.shape[0]} poses")
-        object.__setattr__(self, "flange2base", F)
-        object.__setattr__(self, "points_sensor", p)
-        object.__setattr__(self, "pose_index", idx)
-
-    @classmethod
-    def from_yz(
-        cls, flange2base: ArrayLike, y: ArrayLike, z: ArrayLike, pose_index: ArrayLike
-    ) -> Sweep:
-        """Build from laser-plane coordinates ``y, z`` (metres, ``(N,)``)."""
-        ya = np.asarray(y, dtype=np.float64)
-        za = np.asarray(z, dtype=np.float64)
-        pts = np.stack([np.zeros_like(ya), ya, za], axis=-1)
-        return cls(np.asarray(flange2base, dtype=np.float64), pts, np.asarray(pose_index))
-
-    @property
-    def n_points(self) -> int:
-        return int(self.points_sensor.shape[0])
-
-    @property
-    def n_poses(self) -> int:
-        return int(self.flange2base.shape[0])
-
-    def points_base(self, sensor2flange: ArrayLike) -> FloatArray:
-        """All points mapped into the base frame through ``sensor2flange`` (4, 4): ``(N, 3)``."""
-        X = np.asarray(sensor2flange, dtype=np.float64)
-        pf = _rows_times(self.points_sensor, X[:3, :3].T) + X[:3, 3]
-        F = self.flange2base[self.pose_index]
-        return np.matmul(F[:, :3, :3], pf[:, :, None])[:, :, 0] + F[:, :3, 3]
-
-    def subset(self, mask: ArrayLike) -> Sweep:
-        """The same sweep with only the points where ``mask`` is true."""
-        m = np.asarray(mask, dtype=bool)
-        return Sweep(self.flange2base, self.points_sensor[m], self.pose_index[m])
-
-
-@dataclass(frozen=True, eq=False)
-class HandEyeResult:
-    """A sensor-to-flange calibration.
-
-    ``cov`` is ``(6, 6)`` in the order ``[w_x, w_y, w_z (rad, about sensor axes), t_x, t_y, t_z
-    (m, flange frame)]``; ``cov_full`` adds the ball centre (m) and, if estimated, the radius (m).
-    Residuals are signed distances of the inlier points to the ball surface (metres).
-    ``advice`` is empty unless the condition number exceeded the soft threshold.
-    """
-
-    sensor2flange: FloatArray
-    ball_centre_base: FloatArray
-    ball_radius_m: float
-    cov: FloatArray
-    per_sweep_rms: FloatArray
-    rms: float
-    n_points: int
-    condition: float
-    method: str
-    inliers: tuple[BoolArray, ...] = field(repr=False)
-    advice: str = ""
-    cov_full: FloatArray | None = field(default=None, repr=False)
-
-    @property
-    def sigma_rotation_rad(self) -> FloatArray:
-        """1-sigma rotation uncertainty about the sensor X, Y, Z axes (radians)."""
-        return np.sqrt(np.clip(np.diag(self.cov)[:3], 0.0, None))
-
-    @property
-    def sigma_translation_m(self) -> FloatArray:
-        """1-sigma uncertainty of the sensor origin along flange X, Y, Z (metres)."""
-        return np.sqrt(np.clip(np.diag(self.cov)[3:6], 0.0, None))
-
-    def as_ur_pose(self) -> FloatArray:
-        """The TCP as a UR pose ``p[x, y, z, rx, ry, rz]`` (metres, rotation vector)."""
-        return se3.matrix_to_pose(self.sensor2flange)
-
-
-@dataclass(frozen=True, eq=False)
-class OrientationSolution:
-    """Step 1: sensor-to-flange rotation from constant-orientation sweeps.
-
-    ``residuals`` ``(K, 3)`` (m) are the Procrustes misfits of the ball centres in the
-    flange-aligned frame; ``cov`` ``(3, 3)`` (rad^2) is about the sensor axes (right
-    perturbation)."""
-
-    rotation: FloatArray
-    centres_sensor: FloatArray
-    residuals: FloatArray
-    rms: float
-    cov: FloatArray
-    iterations: int
-    inliers: tuple[BoolArray, ...] = field(repr=False)
-
-
-@dataclass(frozen=True, eq=False)
-class OriginSolution:
-    """Step 2: sensor origin in the flange frame (m) and the ball centre in base (m)."""
-
-    translation: FloatArray
-    ball_centre_base: FloatArray
-    centres_sensor: FloatArray
-    residuals: FloatArray
-    cov: FloatArray
-    sigma: float
-    inliers: tuple[BoolArray, ...] = field(repr=False)
-
-
-@dataclass(frozen=True, eq=False)
-class Identifiability:
-    """Conditioning of the joint problem at a solution.
-
-    ``condition`` is the 2-norm condition number of the Jacobian after scaling every column to unit
-    norm (so it does not depend on units). ``weakest`` is the parameter-space direction (same order
-    as ``HandEyeResult.cov_full``) that the data constrain least; ``advice`` says what to add."""
-
-    condition: float
-    singular_values: FloatArray
-    weakest: FloatArray
-    advice: str
-
-
 # --------------------------------------------------------------------------------------------
 # Small helpers
-
-
-def _skew(v: FloatArray) -> FloatArray:
-    out = np.zeros((*v.shape[:-1], 3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
-
-
-def _right_jacobian(w: FloatArray) -> FloatArray:
-    """Right Jacobian of SO(3) at rotation vector ``w``: ``exp(w + e) ~ exp(w) exp(Jr(w) e)``."""
-    th = float(np.linalg.norm(w))
-    K = _skew(w)
-    if th < 1e-6:
-        return np.eye(3) - 0.5 * K + K @ K / 6.0
-    return np.eye(3) - (1.0 - np.cos(th)) / th**2 * K + (th - np.sin(th)) / th**3 * (K @ K)
 
 
 def _kabsch(a: FloatArray, b: FloatArray) -> FloatArray:
@@ -279,33 +117,6 @@ def _mean_rotation(R: FloatArray) -> FloatArray:
     U, _, Vt = np.linalg.svd(R.sum(axis=0))
     d = np.sign(np.linalg.det(U @ Vt))
     return U @ np.diag([1.0, 1.0, d]) @ Vt
-
-
-def _check_radius(ball_radius: float) -> float:
-    r = float(ball_radius)
-    if not np.isfinite(r) or r <= 0.0:
-        raise ValueError(f"ball_radius must be a positive length in metres, got {ball_radius!r}")
-    return r
-
-
-def _check_sweeps(sweeps: Sequence[Sweep], what: str) -> list[Sweep]:
-    out = list(sweeps)
-    for k, s in enumerate(out):
-        if not isinstance(s, Sweep):
-            raise TypeError(f"{what}[{k}] is {type(s).__name__}, expected Sweep")
-        if s.n_points < 4:
-            raise ValueError(f"{what}[{k}] has {s.n_points} points; a sphere needs at least 4")
-    return out
-
-
-def _translation_only(sweep: Sweep, k: int, tol_rad: float) -> None:
-    R = sweep.flange2base[:, :3, :3]
-    dev = se3.rotation_angle(np.swapaxes(R[:1], -1, -2) @ R)
-    if dev.size and float(dev.max()) > tol_rad:
-        raise ValueError(
-            f"sweep {k} rotates by {np.degrees(dev.max()):.3f} deg; the two-step method needs "
-            "constant-orientation sweeps (use refine() for general motion)"
-        )
 
 
 # --------------------------------------------------------------------------------------------
@@ -379,15 +190,15 @@ def solve_orientation(
     translate. Raises :class:`PoorlyConstrained` when the ball centres are (nearly) collinear in the
     sensor frame (the rotation about that line is then undetermined).
     """
-    sw = _check_sweeps(fov_sweeps, "fov_sweeps")
+    sw = check_sweeps(fov_sweeps, "fov_sweeps")
     if len(sw) < 3:
         raise PoorlyConstrained(
             f"orientation needs the ball at >= 3 field-of-view locations, got {len(sw)}",
             "place the ball at more field-of-view locations (9 by default)",
         )
-    R = _check_radius(ball_radius)
+    R = check_radius(ball_radius)
     for k, s in enumerate(sw):
-        _translation_only(s, k, orientation_tol_rad)
+        translation_only(s, k, orientation_tol_rad)
     R_start = np.stack([s.flange2base[0, :3, :3] for s in sw])
     R0 = _mean_rotation(R_start)
     spread = se3.rotation_angle(R0.T @ R_start)
@@ -426,7 +237,7 @@ def solve_orientation(
     dof = max(3 * len(sw) - 6, 1)
     s2 = float(np.sum(res**2)) / dof
     # Right perturbation: R (I + [w]x) a = R a - R [a]x w; |R .| is orthogonal so J^T J = sum A^T A.
-    A = _skew(ac)
+    A = skew(ac)
     JtJ = np.einsum("kji,kjl->il", A, A)
     cov = s2 * np.linalg.pinv(JtJ)
     rms = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
@@ -449,11 +260,11 @@ def solve_origin(
     ``R_i t_sf + T_i' = c_base`` is the paper's TCP problem, solved by ``calib.tcp.solve_tcp``.
     Needs >= 3 sufficiently different orientations; otherwise raises :class:`PoorlyConstrained`.
     """
-    sw = _check_sweeps(sweeps, "sweeps")
-    R = _check_radius(ball_radius)
+    sw = check_sweeps(sweeps, "sweeps")
+    R = check_radius(ball_radius)
     Rsf = np.asarray(sensor_rotation, dtype=np.float64)
     for k, s in enumerate(sw):
-        _translation_only(s, k, orientation_tol_rad)
+        translation_only(s, k, orientation_tol_rad)
     centres, inl = _fit_centres(sw, R, Rsf, (1.0, 0.0, 0.0), robust)
     return _origin_from_centres(sw, Rsf, centres, inl, method)
 
@@ -508,9 +319,9 @@ def two_step(
     the solution, with the sphere-fit inliers. ``check`` raises :class:`PoorlyConstrained` above
     ``cond_hard``.
     """
-    fov = _check_sweeps(fov_sweeps, "fov_sweeps")
-    tilt = _check_sweeps(tilt_sweeps, "tilt_sweeps")
-    R = _check_radius(ball_radius)
+    fov = check_sweeps(fov_sweeps, "fov_sweeps")
+    tilt = check_sweeps(tilt_sweeps, "tilt_sweeps")
+    R = check_radius(ball_radius)
     ori = solve_orientation(
         fov,
         R,
@@ -519,7 +330,7 @@ def two_step(
         robust=robust,
     )
     for k, sweep in enumerate(tilt):
-        _translation_only(sweep, len(fov) + k, orientation_tol_rad)
+        translation_only(sweep, len(fov) + k, orientation_tol_rad)
     # The FOV sweeps' centres from step 1's last pass were computed with the converged rotation.
     tc, t_inl = _fit_centres(tilt, R, ori.rotation, (1.0, 0.0, 0.0), robust)
     org = _origin_from_centres(
@@ -531,12 +342,12 @@ def two_step(
     )
     X = se3.make(ori.rotation, org.translation)
     inliers = org.inliers
-    stack = _Stack.build([*fov, *tilt], inliers)
+    stack = PointStack.build([*fov, *tilt], inliers)
     r = stack.residuals(X[:3, :3], X[:3, 3], org.ball_centre_base, R)
     cov = np.zeros((6, 6))
     cov[:3, :3] = ori.cov
     cov[3:, 3:] = org.cov
-    ident = _identifiability(
+    ident = identifiability(
         stack.jacobian(X[:3, :3], X[:3, 3], org.ball_centre_base, fit_radius=False),
         X[:3, :3],
         cond_soft,
@@ -556,150 +367,6 @@ def two_step(
         inliers=inliers,
         advice=ident.advice if ident.condition > cond_soft else "",
     )
-
-
-# --------------------------------------------------------------------------------------------
-# Joint refinement
-
-
-def _rows_times(A: FloatArray, M: FloatArray) -> FloatArray:
-    """``A @ M`` for tall ``A`` (N, 3) and a 3x3 ``M``, as broadcast multiply-adds: BLAS is slow for
-    such skinny products (and contends for the cores when it multi-threads)."""
-    return A[:, :1] * M[0] + A[:, 1:2] * M[1] + A[:, 2:] * M[2]
-
-
-@dataclass
-class _Stack:
-    """Points of several sweeps stacked with their flange pose, for vectorised residuals."""
-
-    p: FloatArray  # (N, 3) sensor frame
-    Rf: FloatArray  # (N, 3, 3) flange2base rotation of each point's profile
-    Tf: FloatArray  # (N, 3)
-    sweep: IntArray  # (N,) sweep number
-    n_sweeps: int
-
-    @classmethod
-    def build(cls, sweeps: Sequence[Sweep], masks: Sequence[BoolArray] | None = None) -> _Stack:
-        ps, Rs, Ts, ks = [], [], [], []
-        for k, s in enumerate(sweeps):
-            m = np.ones(s.n_points, bool) if masks is None else np.asarray(masks[k], bool)
-            idx = s.pose_index[m]
-            ps.append(s.points_sensor[m])
-            Rs.append(s.flange2base[idx, :3, :3])
-            Ts.append(s.flange2base[idx, :3, 3])
-            ks.append(np.full(idx.shape, k, dtype=np.intp))
-        return cls(
-            np.concatenate(ps),
-            np.concatenate(Rs),
-            np.concatenate(Ts),
-            np.concatenate(ks),
-            len(sweeps),
-        )
-
-    def subset(self, mask: BoolArray) -> _Stack:
-        return _Stack(self.p[mask], self.Rf[mask], self.Tf[mask], self.sweep[mask], self.n_sweeps)
-
-    def to_base(self, Rsf: FloatArray, tsf: FloatArray) -> FloatArray:
-        """Points in the base frame ``(N, 3)`` (m)."""
-        pf = _rows_times(self.p, Rsf.T) + tsf
-        return np.matmul(self.Rf, pf[:, :, None])[:, :, 0] + self.Tf
-
-    def residuals(
-        self, Rsf: FloatArray, tsf: FloatArray, c: FloatArray, radius: float
-    ) -> FloatArray:
-        w = self.to_base(Rsf, tsf) - c
-        return np.sqrt(np.einsum("ni,ni->n", w, w)) - radius
-
-    def normals(self, Rsf: FloatArray, tsf: FloatArray, c: FloatArray) -> FloatArray:
-        """Unit vectors from the ball centre to each point, base frame ``(N, 3)``."""
-        w = self.to_base(Rsf, tsf) - c
-        return w / np.sqrt(np.einsum("ni,ni->n", w, w))[:, None]
-
-    def jacobian(
-        self,
-        Rsf: FloatArray,
-        tsf: FloatArray,
-        c: FloatArray,
-        fit_radius: bool,
-        Jr: FloatArray | None = None,
-    ) -> FloatArray:
-        """d residual / d [w (sensor-axis rotation increment), t_sf, c, (radius)], ``(N, 9|10)``.
-
-        With ``n`` the unit normal in base and ``m = R_f^T n``: d/dt = m, d/dc = -n and, for
-        ``R_sf exp(w)``, d/dw = p x (R_sf^T m) (times the right Jacobian ``Jr`` away from w = 0)."""
-        n = self.normals(Rsf, tsf, c)
-        m_f = np.matmul(n[:, None, :], self.Rf)[:, 0, :]
-        g = np.cross(self.p, _rows_times(m_f, Rsf))
-        if Jr is not None:
-            g = _rows_times(g, Jr)
-        cols = [g, m_f, -n]
-        if fit_radius:
-            cols.append(-np.ones((n.shape[0], 1)))
-        return np.concatenate(cols, axis=1)
-
-    def rms(self, r: FloatArray) -> tuple[FloatArray, float]:
-        cnt = np.bincount(self.sweep, minlength=self.n_sweeps).astype(np.float64)
-        ss = np.bincount(self.sweep, weights=r**2, minlength=self.n_sweeps)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            per = np.sqrt(ss / cnt)
-        return per, float(np.sqrt(np.mean(r**2))) if r.size else float("nan")
-
-
-def _identifiability(J: FloatArray, Rsf: FloatArray, soft: float = COND_SOFT) -> Identifiability:
-    """Column-equilibrated condition number of ``J`` and advice from its weak directions.
-
-    A direction is weak when its singular value is below ``s_max / soft`` (the smallest one always
-    counts). Weak directions dominated by the rotation call for more FOV locations; those
-    dominated by the sensor origin (confounded with the ball centre) call for tilts about the axes
-    perpendicular to them, since a rotation about ``u`` leaves the origin along ``u`` unobserved.
-    """
-    norms = np.sqrt(np.einsum("ni,ni->i", J, J))
-    norms[norms == 0.0] = 1.0
-    Js = J / norms
-    # Eigen-decomposition of the small normal matrix instead of an SVD of the tall Jacobian: the
-    # condition numbers of interest (< 1e8) keep its eigenvalues well above rounding.
-    lam, V = np.linalg.eigh(Js.T @ Js)
-    lam, V = lam[::-1], V[:, ::-1]
-    s = np.sqrt(np.clip(lam, 0.0, None))
-    cond = float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
-    weakest = V[:, -1] / norms
-    weakest = weakest / np.linalg.norm(weakest)
-    weak = [i for i in range(len(s)) if s[i] * soft < s[0]] or [len(s) - 1]
-    rot_axes: list[str] = []
-    trans_dirs: list[FloatArray] = []
-    for i in weak:
-        v = V[:, i]
-        if float(np.sum(v[:3] ** 2)) >= float(np.sum(v[3:6] ** 2)):
-            rot_axes.append(_AXES[int(np.argmax(np.abs(v[:3])))])
-        else:
-            u = Rsf.T @ v[3:6]
-            trans_dirs.append(u / np.linalg.norm(u))
-    parts: list[str] = []
-    if trans_dirs:
-        # Rank of the weak translation subspace: 1 -> one axis unobserved, >= 2 -> too few tilts.
-        rank = int(np.linalg.matrix_rank(np.array(trans_dirs), tol=0.3))
-        if rank >= 2:
-            parts.append(
-                "the sensor origin is unobserved in several directions: add orientations tilted "
-                "about two different axes, e.g. the sensor X and Y axes (>= 45 deg between tool Z "
-                "axes)"
-            )
-        else:
-            i = int(np.argmax(np.abs(trans_dirs[0])))
-            others = [a for j, a in enumerate(_AXES) if j != i]
-            parts.append(
-                f"the sensor origin along the sensor {_AXES[i]} axis is the least constrained: add "
-                f"orientations tilted about the sensor {others[0]} or {others[1]} axis (>= 45 deg "
-                "between tool Z axes)"
-            )
-    if rot_axes:
-        axes = " and ".join(sorted(set(rot_axes)))
-        parts.append(
-            f"the rotation about the sensor {axes} axis is the least constrained: place the ball "
-            "at more field-of-view locations, spread both along the laser line (sensor Y) and in "
-            "depth (sensor Z)"
-        )
-    return Identifiability(cond, s, weakest, "; ".join(parts))
 
 
 def _apply_check(ident: Identifiability, check: bool, soft: float, hard: float) -> None:
@@ -745,44 +412,9 @@ def check_identifiability(
 
     ``advice`` always names what would help most; it matters when ``condition > cond_soft``."""
     X = se3.check_transform(sensor2flange, "sensor2flange")
-    stack = _Stack.build(_check_sweeps(sweeps, "sweeps"), masks)
+    stack = PointStack.build(check_sweeps(sweeps, "sweeps"), masks)
     J = stack.jacobian(X[:3, :3], X[:3, 3], np.asarray(ball_centre_base, float), fit_radius)
-    return _identifiability(J, X[:3, :3], cond_soft)
-
-
-def _initial_fits(
-    sweeps: Sequence[Sweep], X: FloatArray, radius: float | None, band_m: float
-) -> tuple[list[BoolArray], FloatArray, float]:
-    """Robust sphere fit of each sweep mapped to base with the initial guess: inlier masks (the
-    post, table and stray points out), the median centre (m) and the median radius (m).
-
-    A sweep whose fit fails (e.g. the post dominates it) takes the points within ``band_m`` of the
-    ball predicted by the other sweeps; the refinement's residual thresholding then settles it."""
-    pts = [s.points_base(X) for s in sweeps]
-    masks: list[BoolArray | None] = []
-    centres, radii = [], []
-    for k, P in enumerate(pts):  # one robust fit per sweep; each fit is vectorised
-        try:
-            fit = sphere.fit_sphere(P, radius=radius, robust="tukey")
-        except ValueError as exc:
-            log.debug("initial sphere fit of sweep %d failed (%s); using the others", k, exc)
-            masks.append(None)
-            continue
-        masks.append(np.asarray(fit.inliers, dtype=bool))
-        centres.append(fit.centre)
-        radii.append(fit.radius)
-    if not centres:
-        raise ValueError(
-            "no sweep could be fitted with a sphere from the initial sensor2flange; pass a "
-            "two_step() result or inlier masks"
-        )
-    c = np.median(np.array(centres), axis=0)
-    r = float(np.median(radii))
-    out = [
-        m if m is not None else np.abs(np.linalg.norm(P - c, axis=1) - r) <= band_m
-        for m, P in zip(masks, pts, strict=True)
-    ]
-    return out, c, r
+    return identifiability(J, X[:3, :3], cond_soft)
 
 
 def refine(
@@ -833,118 +465,21 @@ def refine(
     Returns a :class:`HandEyeResult` with ``method="joint"``; ``cov = s^2 (J^T J)^-1`` (+ robot
     term) marginalised to the 6 sensor2flange parameters.
     """
-    sw = _check_sweeps(sweeps, "sweeps")
+    sw = check_sweeps(sweeps, "sweeps")
     if not sw:
         raise ValueError("refine needs at least one sweep")
     if ball_radius is None:
         fit_radius = True
-    if isinstance(initial, HandEyeResult):
-        X0 = np.asarray(initial.sensor2flange, dtype=np.float64)
-        c0 = np.asarray(initial.ball_centre_base, dtype=np.float64)
-        r0 = float(initial.ball_radius_m) if ball_radius is None else _check_radius(ball_radius)
-        if masks is None and len(initial.inliers) == len(sw):
-            masks = initial.inliers
-    else:
-        X0 = se3.check_transform(np.asarray(initial, dtype=np.float64), "initial")
-        c0 = None
-        r0 = float("nan") if ball_radius is None else _check_radius(ball_radius)
-    if masks is None or c0 is None:
-        fit_masks, fit_c, fit_r = _initial_fits(
-            sw, X0, None if ball_radius is None else r0, init_band_m
-        )
-        masks = fit_masks if masks is None else masks
-        c0 = fit_c if c0 is None else c0
-        r0 = fit_r if not np.isfinite(r0) else r0
-    cur = [np.asarray(m, dtype=bool).copy() for m in masks]
-    if len(cur) != len(sw):
-        raise ValueError(f"masks: {len(cur)} arrays for {len(sw)} sweeps")
-    for k, s in enumerate(sw):
-        if cur[k].shape != (s.n_points,):
-            raise ValueError(f"masks[{k}] has shape {cur[k].shape}, expected ({s.n_points},)")
-    full = _Stack.build(sw)
-    R_base = X0[:3, :3].copy()
-    t = X0[:3, 3].copy()
-    c = np.asarray(c0, dtype=np.float64).copy()
-    radius = r0
-    n_par = 10 if fit_radius else 9
-
-    def unpack(x: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, float]:
-        Rsf = R_base @ se3.rotvec_to_matrix(x[:3])
-        return Rsf, x[3:6], x[6:9], (float(x[9]) if fit_radius else radius)
-
-    mask_all = np.concatenate(cur)
-    for _ in range(max_rounds):
-        stack = full.subset(mask_all)
-        if stack.p.shape[0] <= n_par:
-            raise ValueError("too few inlier points for the joint refinement")
-        # Each round re-linearises about the current rotation (w = 0 at the start).
-        x0 = np.concatenate([np.zeros(3), t, c, [radius] if fit_radius else []])
-
-        def fun(x: FloatArray, st: _Stack = stack) -> FloatArray:
-            Rsf, tt, cc, rr = unpack(x)
-            return st.residuals(Rsf, tt, cc, rr)
-
-        def jac(x: FloatArray, st: _Stack = stack) -> FloatArray:
-            Rsf, tt, cc, _ = unpack(x)
-            return st.jacobian(Rsf, tt, cc, fit_radius, _right_jacobian(x[:3]))
-
-        if loss == "linear":
-            # MINPACK's QR on the tall Jacobian is several times faster than trf's SVD.
-            sol = least_squares(fun, x0, jac=jac, method="lm", x_scale="jac",
-                                xtol=1e-14, ftol=1e-14, gtol=1e-14)  # fmt: skip
-        else:
-            r_start = fun(x0)
-            f_scale = max(1.4826 * float(np.median(np.abs(r_start - np.median(r_start)))), 1e-9)
-            sol = least_squares(fun, x0, jac=jac, method="trf", loss=loss, f_scale=f_scale,
-                                x_scale="jac", xtol=1e-14, ftol=1e-14, gtol=1e-14)  # fmt: skip
-        R_base, t, c, radius = unpack(sol.x)
-        # New inlier mask on all points from the robust scale of the current inliers.
-        r_all = full.residuals(R_base, t, c, radius)
-        r_in = r_all[mask_all]
-        sig = 1.4826 * float(np.median(np.abs(r_in - np.median(r_in))))
-        new_mask = np.abs(r_all) <= max(outlier_sigma * sig, min_threshold_m)
-        if np.array_equal(new_mask, mask_all):
-            break
-        mask_all = new_mask
-
-    stack = full.subset(mask_all)
-    r = stack.residuals(R_base, t, c, radius)
-    J = stack.jacobian(R_base, t, c, fit_radius)
-    N = r.size
-    s2 = float(np.sum(r**2)) / max(N - n_par, 1)
-    H_inv = np.asarray(np.linalg.pinv(J.T @ J), dtype=np.float64)
-    cov_full = s2 * H_inv
-    if robot_sigma_m > 0.0:
-        # A flange-position error e_k of sweep k shifts every residual of the sweep by n_j . e_k,
-        # hence the parameters by -H^-1 G_k e_k with G_k = sum_j J_j^T n_j^T.
-        n = stack.normals(R_base, t, c)
-        G = np.stack(
-            [
-                np.stack(
-                    [np.bincount(stack.sweep, J[:, a] * n[:, i], len(sw)) for i in range(3)], -1
-                )
-                for a in range(n_par)
-            ],
-            axis=1,
-        )  # (sweeps, n_par, 3)
-        B = np.einsum("kpi,kqi->pq", G, G)
-        cov_full = cov_full + robot_sigma_m**2 * (H_inv @ B @ H_inv)
-    ident = _identifiability(J, R_base, cond_soft)
-    _apply_check(ident, check, cond_soft, cond_hard)
-    per, rms = stack.rms(r)
-    splits = np.cumsum([s.n_points for s in sw])[:-1]
-    inliers = tuple(np.split(mask_all, splits))
-    return HandEyeResult(
-        sensor2flange=se3.make(R_base, t),
-        ball_centre_base=np.asarray(c, dtype=np.float64),
-        ball_radius_m=float(radius),
-        cov=cov_full[:6, :6].copy(),
-        per_sweep_rms=per,
-        rms=rms,
-        n_points=int(N),
-        condition=ident.condition,
-        method="joint",
-        inliers=inliers,
-        advice=ident.advice if ident.condition > cond_soft else "",
-        cov_full=cov_full,
+    X0, c, radius, cur = start(sw, initial, ball_radius, masks, init_band_m)
+    full = PointStack.build(sw)
+    outliers = (outlier_sigma, min_threshold_m, max_rounds)
+    R_base, t, c, radius, mask_all = rounds(
+        full, X0, c, radius, np.concatenate(cur), fit_radius, loss, outliers
     )
+    solution = (R_base, t, c, radius)
+    stack = full.subset(mask_all)
+    result, ident = joint_result(
+        sw, stack, mask_all, solution, fit_radius, robot_sigma_m, cond_soft
+    )
+    _apply_check(ident, check, cond_soft, cond_hard)
+    return result

@@ -200,61 +200,8 @@ def icp_point_to_plane(
         raise ValueError(f"init: expected (4, 4), got {T0.shape}")
 
     tree = cKDTree(tgt)
-    # Rotations are linearised about the source centroid with a length scale so that the six
-    # unknowns have comparable size (better conditioned normal equations).
-    centroid = src.mean(axis=0)
-    local = src - centroid
-    radii = np.linalg.norm(local, axis=1)
-    scale = float(np.sqrt(np.mean(radii**2)))
-    reach = float(radii.max())
-    if scale <= 0.0:
-        raise ValueError("source points coincide")
-
-    T = T0.copy()
-    rmse_before = math.nan
-    converged = False
-    it = 0
-    seen: dict[int, int] = {}  # hash of a kept pair set -> iteration it was seen at
-    for it in range(1, max_iter + 1):
-        R, t = T[:3, :3], T[:3, 3]
-        moved = src @ R.T + t
-        si, ti = _pairs(tree, moved, max_distance, trim_fraction)
-        if si.size < _MIN_PAIRS:
-            raise ValueError(
-                f"only {si.size} source points within max_distance={max_distance} m of the "
-                "target; improve init or raise max_distance"
-            )
-        # With noise, trimming can flip a few pairs back and forth: once a pair set repeats,
-        # the estimate only cycles among poses that differ by less than the noise.
-        key = hash((si.tobytes(), ti.tobytes()))
-        if key in seen:
-            converged = True
-            break
-        seen[key] = it
-        n = normals[ti]
-        c = R @ centroid + t  # moved centroid: rotation pivot
-        arm = moved[si] - c
-        r = np.einsum("ni,ni->n", n, moved[si] - tgt[ti])
-        if it == 1:
-            rmse_before = float(np.sqrt(np.mean(r * r)))
-        # r_i + (arm_i x n_i) . w + n_i . v = 0, with w scaled by `scale` for conditioning.
-        J = np.concatenate([np.cross(arm, n) / scale, n], axis=1)
-        H = J.T @ J
-        g = J.T @ r
-        if it == 1:
-            _check_constrained(tgt[ti] - c, n, scale)
-        x = -np.linalg.solve(H, g)
-        w = x[:3] / scale
-        v = x[3:]
-        dR = se3.rotvec_to_matrix(w)
-        # Step about the moved centroid: p -> dR (p - c) + c + v.
-        step = se3.make(dR, c + v - dR @ c)
-        T = step @ T
-        # Upper bound of how far this step moved any source point.
-        moved_by = float(np.linalg.norm(v)) + float(np.linalg.norm(w)) * reach
-        if moved_by < tol:
-            converged = True
-            break
+    pairing = _Pairing(tree, tgt, normals, max_distance, trim_fraction)
+    T, rmse_before, converged, it = _iterate(src, pairing, T0, max_iter, tol)
 
     R, t = T[:3, :3], T[:3, 3]
     moved = src @ R.T + t
@@ -282,3 +229,82 @@ def icp_point_to_plane(
         correction_translation_m=float(np.linalg.norm(corr[:3, 3])),
         correction_rotation_deg=float(np.degrees(se3.rotation_angle(corr[:3, :3]))),
     )
+
+
+@dataclass(frozen=True)
+class _Pairing:
+    """The target side of the ICP: its points, normals and k-d tree, and the pairing limits."""
+
+    tree: cKDTree
+    points: FloatArray
+    normals: FloatArray
+    max_distance: float
+    trim_fraction: float
+
+
+def _iterate(
+    src: FloatArray, tg: _Pairing, T0: FloatArray, max_iter: int, tol: float
+) -> tuple[FloatArray, float, bool, int]:
+    """The ICP loop from ``T0``: returns the estimate, the RMS of the first pairing, whether it
+    converged and the number of correspondence rounds."""
+    # Rotations are linearised about the source centroid with a length scale so that the six
+    # unknowns have comparable size (better conditioned normal equations).
+    centroid = src.mean(axis=0)
+    local = src - centroid
+    radii = np.linalg.norm(local, axis=1)
+    scale = float(np.sqrt(np.mean(radii**2)))
+    reach = float(radii.max())
+    if scale <= 0.0:
+        raise ValueError("source points coincide")
+
+    T = T0.copy()
+    rmse_before = math.nan
+    converged = False
+    it = 0
+    seen: dict[int, int] = {}  # hash of a kept pair set -> iteration it was seen at
+    for it in range(1, max_iter + 1):
+        R, t = T[:3, :3], T[:3, 3]
+        moved = src @ R.T + t
+        si, ti = _pairs(tg.tree, moved, tg.max_distance, tg.trim_fraction)
+        if si.size < _MIN_PAIRS:
+            raise ValueError(
+                f"only {si.size} source points within max_distance={tg.max_distance} m of the "
+                "target; improve init or raise max_distance"
+            )
+        # With noise, trimming can flip a few pairs back and forth: once a pair set repeats,
+        # the estimate only cycles among poses that differ by less than the noise.
+        key = hash((si.tobytes(), ti.tobytes()))
+        if key in seen:
+            converged = True
+            break
+        seen[key] = it
+        n = tg.normals[ti]
+        c = R @ centroid + t  # moved centroid: rotation pivot
+        r = np.einsum("ni,ni->n", n, moved[si] - tg.points[ti])
+        if it == 1:
+            rmse_before = float(np.sqrt(np.mean(r * r)))
+            _check_constrained(tg.points[ti] - c, n, scale)
+        step, moved_by = _step(moved[si] - c, n, r, c, scale, reach)
+        T = step @ T
+        if moved_by < tol:
+            converged = True
+            break
+    return T, rmse_before, converged, it
+
+
+def _step(
+    arm: FloatArray, n: FloatArray, r: FloatArray, c: FloatArray, scale: float, reach: float
+) -> tuple[FloatArray, float]:
+    """The linearised point-to-plane step about the pivot ``c`` (arms ``arm`` from it, normals
+    ``n``, residuals ``r``), and an upper bound of how far it moves any source point (m)."""
+    # r_i + (arm_i x n_i) . w + n_i . v = 0, with w scaled by `scale` for conditioning.
+    J = np.concatenate([np.cross(arm, n) / scale, n], axis=1)
+    H = J.T @ J
+    g = J.T @ r
+    x = -np.linalg.solve(H, g)
+    w = x[:3] / scale
+    v = x[3:]
+    dR = se3.rotvec_to_matrix(w)
+    # Step about the moved centroid: p -> dR (p - c) + c + v.
+    step = se3.make(dR, c + v - dR @ c)
+    return step, float(np.linalg.norm(v)) + float(np.linalg.norm(w)) * reach

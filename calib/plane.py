@@ -237,31 +237,12 @@ def fit_hyperplane(
         normal, anchor = _weighted_hyperplane(P, prior)
     else:
         normal, anchor = _lmeds_start(P, rng)
-    r = (P - anchor) @ normal
     if robust is None:
         w = prior.copy()
         normal, centre = _weighted_hyperplane(P, w)
     else:
-        scale = max(_MAD_TO_SIGMA * float(np.median(np.abs(r))), floor)
-        inl = np.abs(r) < _TUKEY_C * scale
-        for _ in range(max_iter):
-            w = _weights(r / scale, robust) * prior
-            if float(w.sum()) <= 0 or np.count_nonzero(w) < d:
-                raise ValueError("too few points support a hyperplane")
-            new_normal, centre = _weighted_hyperplane(P, w)
-            if float(new_normal @ normal) < 0:
-                new_normal = -new_normal
-            change = float(np.linalg.norm(new_normal - normal))
-            normal = new_normal
-            r = (P - centre) @ normal
-            inl = np.abs(r) < _TUKEY_C * scale
-            med = float(np.median(np.abs(r[inl]))) if np.any(inl) else 0.0
-            new_scale = max(_MAD_TO_SIGMA * med, floor)
-            done = change < tol and abs(new_scale - scale) <= 1e-2 * scale
-            scale = new_scale
-            if done:
-                break
-        w = _weights(r / scale, robust) * prior
+        r = (P - anchor) @ normal
+        normal, centre, scale, w = _irls(P, normal, r, prior, robust, floor, max_iter, tol)
     # Orientation convention: the normal's largest component positive (callers re-orient).
     if normal[int(np.argmax(np.abs(normal)))] < 0:
         normal = -normal
@@ -275,16 +256,7 @@ def fit_hyperplane(
         scale_out = scale
     rms = float(np.sqrt(np.mean(r[inliers] ** 2))) if np.any(inliers) else math.nan
     B = _null_basis(normal)
-    X = P - centre
-    J = np.column_stack([X @ B, -np.ones(n_pts)])  # d r / d (tilts, offset)
-    W = np.where(inliers, w, 0.0)
-    JTJ = (J * W[:, None]).T @ J
-    dof = float(W.sum()) - d
-    if dof > 0 and np.linalg.cond(JTJ) < 1e14:
-        s2 = float(W @ (r * r)) / dof
-        cov = s2 * np.linalg.inv(JTJ)
-    else:
-        cov = np.full((d, d), math.nan)
+    cov = _covariance(P - centre, B, np.where(inliers, w, 0.0), r)
     return HyperplaneFit(
         normal=_ro(normal),
         point=_ro(np.asarray(centre)),
@@ -296,6 +268,54 @@ def fit_hyperplane(
         basis=_ro(B),
         cov=_ro(np.asarray(cov)),
     )
+
+
+def _irls(
+    P: FloatArray,
+    normal: FloatArray,
+    r: FloatArray,
+    prior: FloatArray,
+    robust: Robust,
+    floor: float,
+    max_iter: int,
+    tol: float,
+) -> tuple[FloatArray, FloatArray, float, FloatArray]:
+    """Iteratively re-weighted total least squares from the start ``normal`` (residuals ``r``):
+    returns the normal, the weighted centre, the robust scale and the final weights."""
+    d = P.shape[1]
+    scale = max(_MAD_TO_SIGMA * float(np.median(np.abs(r))), floor)
+    for _ in range(max_iter):
+        w = _weights(r / scale, robust) * prior
+        if float(w.sum()) <= 0 or np.count_nonzero(w) < d:
+            raise ValueError("too few points support a hyperplane")
+        new_normal, centre = _weighted_hyperplane(P, w)
+        if float(new_normal @ normal) < 0:
+            new_normal = -new_normal
+        change = float(np.linalg.norm(new_normal - normal))
+        normal = new_normal
+        r = (P - centre) @ normal
+        inl = np.abs(r) < _TUKEY_C * scale
+        med = float(np.median(np.abs(r[inl]))) if np.any(inl) else 0.0
+        new_scale = max(_MAD_TO_SIGMA * med, floor)
+        done = change < tol and abs(new_scale - scale) <= 1e-2 * scale
+        scale = new_scale
+        if done:
+            break
+    return normal, centre, scale, _weights(r / scale, robust) * prior
+
+
+def _covariance(X: FloatArray, B: FloatArray, W: FloatArray, r: FloatArray) -> FloatArray:
+    """Covariance (d, d) of the tilts along the basis ``B`` and the offset, from the weighted
+    residuals ``r`` of the points ``X`` (relative to the centre); NaN without degrees of
+    freedom or when ill-conditioned."""
+    d = X.shape[1]
+    J = np.column_stack([X @ B, -np.ones(X.shape[0])])  # d r / d (tilts, offset)
+    JTJ = (J * W[:, None]).T @ J
+    dof = float(W.sum()) - d
+    if dof > 0 and np.linalg.cond(JTJ) < 1e14:
+        s2 = float(W @ (r * r)) / dof
+        return np.asarray(s2 * np.linalg.inv(JTJ))
+    return np.full((d, d), math.nan)
 
 
 _A = TypeVar("_A", bound=NDArray[Any])

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.optimize import least_squares
+from scipy.optimize import OptimizeResult, least_squares
 
 from wristscan.calib import se3
 from wristscan.calib.se3 import FloatArray
@@ -193,67 +193,9 @@ def fit_table_axis(
     k = C.shape[0]
     _check_angles(th, min_span_rad)
 
-    # Plane fit: the normal is the direction of least spread of the centres.
-    mean = C.mean(axis=0)
-    _, sv, Vt = np.linalg.svd(C - mean, full_matrices=False)
-    rms_spread = sv[0] / np.sqrt(k)
-    if rms_spread < 1e-6:
-        raise ValueError(
-            "ball centres coincide: the ball sits on the axis or the table did not turn; "
-            "fix the ball away from the table centre"
-        )
-    if sv[1] < 1e-6 * sv[0]:
-        raise ValueError(
-            "ball centres are collinear: check that the table really turned between measurements"
-        )
-    e1, e2, n = Vt[0], Vt[1], Vt[2]
-
-    # Algebraic circle fit in the plane: x^2 + y^2 = 2 a x + 2 b y + c.
-    xy = (C - mean) @ np.stack([e1, e2], axis=1)
-    A = np.column_stack([2.0 * xy, np.ones(k)])
-    (ca, cb, cc), *_ = np.linalg.lstsq(A, (xy**2).sum(axis=1), rcond=None)
-    r0 = float(np.sqrt(max(cc + ca * ca + cb * cb, 0.0)))
-    p0 = mean + ca * e1 + cb * e2
-    if r0 < 1e-6:
-        raise ValueError("ball circle radius is ~0: fix the ball away from the table centre")
-
-    # Sign of the axis: the one for which ball azimuth minus table angle is most nearly constant.
-    d = C - p0
-    best: tuple[float, FloatArray, FloatArray, FloatArray, float] | None = None
-    for a in (n, -n):
-        v = np.cross(a, e1)
-        psi = np.arctan2(d @ v, d @ e1)
-        z = np.mean(np.exp(1j * (psi - th)))
-        if best is None or abs(z) > best[0]:
-            best = (abs(z), a, e1, v, float(np.angle(z)))
-    assert best is not None
-    _, a0, u0, v0, phi0 = best
-
-    x_init = np.array([0.0, 0.0, *p0, r0, phi0])
-    sol = least_squares(_residuals, x_init, args=(C, th, a0, u0, v0), method="lm", x_scale="jac")
-    w = sol.x[0] * u0 + sol.x[1] * v0
-    Rw = se3.rotvec_to_matrix(w)
-    a_f, u_f = Rw @ a0, Rw @ u0
-    p_f, r_f, phi_f = sol.x[2:5], float(sol.x[5]), float(sol.x[6])
-    if r_f < 0:  # a negative radius is the same circle with the phase turned by pi
-        r_f, phi_f = -r_f, phi_f + np.pi
-
-    # Re-anchor on the deterministic table X so the phase and the covariance read in that frame.
-    x_det = table_x_axis(a_f)
-    y_det = np.cross(a_f, x_det)
-    beta = float(np.arctan2(np.cross(x_det, u_f) @ a_f, x_det @ u_f))
-    x_fin = np.array([0.0, 0.0, *p_f, r_f, _wrap(phi_f + beta)])
-    sol2 = least_squares(
-        _residuals, x_fin, args=(C, th, a_f, x_det, y_det), method="lm", x_scale="jac"
-    )
-    w2 = sol2.x[0] * x_det + sol2.x[1] * y_det
-    R2 = se3.rotvec_to_matrix(w2)
-    direction = R2 @ a_f
-    x_out = table_x_axis(direction)
-    beta2 = float(np.arctan2(np.cross(x_out, R2 @ x_det) @ direction, x_out @ (R2 @ x_det)))
-    point = sol2.x[2:5].copy()
-    radius = float(sol2.x[5])
-    phase = _wrap(float(sol2.x[6]) + beta2)
+    p0, r0, e1, n = _initial_circle(C)
+    a0, u0, v0, phi0 = _axis_sign(C, th, p0, n, e1)
+    direction, point, radius, phase, sol2 = _refine(C, th, p0, r0, (a0, u0, v0), phi0)
 
     res = sol2.fun.reshape(k, 3)
     dof = 3 * k - 7
@@ -283,6 +225,94 @@ def fit_table_axis(
         residuals_m=res,
         n_angles=k,
     )
+
+
+def _initial_circle(C: FloatArray) -> tuple[FloatArray, float, FloatArray, FloatArray]:
+    """The circle of the centres ``C`` (k, 3): centre (m), radius (m), first in-plane axis and
+    plane normal, from an SVD plane fit and an algebraic circle fit in that plane."""
+    k = C.shape[0]
+    # Plane fit: the normal is the direction of least spread of the centres.
+    mean = C.mean(axis=0)
+    _, sv, Vt = np.linalg.svd(C - mean, full_matrices=False)
+    rms_spread = sv[0] / np.sqrt(k)
+    if rms_spread < 1e-6:
+        raise ValueError(
+            "ball centres coincide: the ball sits on the axis or the table did not turn; "
+            "fix the ball away from the table centre"
+        )
+    if sv[1] < 1e-6 * sv[0]:
+        raise ValueError(
+            "ball centres are collinear: check that the table really turned between measurements"
+        )
+    e1, e2, n = Vt[0], Vt[1], Vt[2]
+
+    # Algebraic circle fit in the plane: x^2 + y^2 = 2 a x + 2 b y + c.
+    xy = (C - mean) @ np.stack([e1, e2], axis=1)
+    A = np.column_stack([2.0 * xy, np.ones(k)])
+    (ca, cb, cc), *_ = np.linalg.lstsq(A, (xy**2).sum(axis=1), rcond=None)
+    r0 = float(np.sqrt(max(cc + ca * ca + cb * cb, 0.0)))
+    p0 = mean + ca * e1 + cb * e2
+    if r0 < 1e-6:
+        raise ValueError("ball circle radius is ~0: fix the ball away from the table centre")
+    return p0, r0, e1, n
+
+
+def _axis_sign(
+    C: FloatArray, th: FloatArray, p0: FloatArray, n: FloatArray, e1: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray, float]:
+    """Sign of the axis: the one for which ball azimuth minus table angle is most nearly
+    constant. Returns the axis, the anchor frame's X and Y, and the phase (rad)."""
+    d = C - p0
+    best: tuple[float, FloatArray, FloatArray, FloatArray, float] | None = None
+    for a in (n, -n):
+        v = np.cross(a, e1)
+        psi = np.arctan2(d @ v, d @ e1)
+        z = np.mean(np.exp(1j * (psi - th)))
+        if best is None or abs(z) > best[0]:
+            best = (abs(z), a, e1, v, float(np.angle(z)))
+    assert best is not None
+    _, a0, u0, v0, phi0 = best
+    return a0, u0, v0, phi0
+
+
+def _refine(
+    C: FloatArray,
+    th: FloatArray,
+    p0: FloatArray,
+    r0: float,
+    frame: tuple[FloatArray, FloatArray, FloatArray],
+    phi0: float,
+) -> tuple[FloatArray, FloatArray, float, float, OptimizeResult]:
+    """Least squares of the circle model from the start (axis ``frame`` = (a0, u0, v0)), then
+    again anchored on the deterministic table X: direction, point, radius, phase and the
+    second solution (its residuals and Jacobian read in that frame)."""
+    a0, u0, v0 = frame
+    x_init = np.array([0.0, 0.0, *p0, r0, phi0])
+    sol = least_squares(_residuals, x_init, args=(C, th, a0, u0, v0), method="lm", x_scale="jac")
+    w = sol.x[0] * u0 + sol.x[1] * v0
+    Rw = se3.rotvec_to_matrix(w)
+    a_f, u_f = Rw @ a0, Rw @ u0
+    p_f, r_f, phi_f = sol.x[2:5], float(sol.x[5]), float(sol.x[6])
+    if r_f < 0:  # a negative radius is the same circle with the phase turned by pi
+        r_f, phi_f = -r_f, phi_f + np.pi
+
+    # Re-anchor on the deterministic table X so the phase and the covariance read in that frame.
+    x_det = table_x_axis(a_f)
+    y_det = np.cross(a_f, x_det)
+    beta = float(np.arctan2(np.cross(x_det, u_f) @ a_f, x_det @ u_f))
+    x_fin = np.array([0.0, 0.0, *p_f, r_f, _wrap(phi_f + beta)])
+    sol2 = least_squares(
+        _residuals, x_fin, args=(C, th, a_f, x_det, y_det), method="lm", x_scale="jac"
+    )
+    w2 = sol2.x[0] * x_det + sol2.x[1] * y_det
+    R2 = se3.rotvec_to_matrix(w2)
+    direction = R2 @ a_f
+    x_out = table_x_axis(direction)
+    beta2 = float(np.arctan2(np.cross(x_out, R2 @ x_det) @ direction, x_out @ (R2 @ x_det)))
+    point = sol2.x[2:5].copy()
+    radius = float(sol2.x[5])
+    phase = _wrap(float(sol2.x[6]) + beta2)
+    return direction, point, radius, phase, sol2
 
 
 def _residuals(

@@ -41,12 +41,12 @@ from numpy.typing import NDArray
 
 from wristscan.calib.latency import LatencyEstimate, estimate_latency
 from wristscan.daemon.calibrate.ball import BallMeasurement, BallScanner, ball_scanner
-from wristscan.daemon.calibrate.table import Progress, no_progress
 from wristscan.daemon.config import Config
 from wristscan.daemon.io.atomic import write_atomic
 from wristscan.daemon.procedure.errors import ProcedureError
 from wristscan.daemon.procedure.in_force import load_sensor_calibration, procedure_acquisition
 from wristscan.daemon.procedure.motion import guarded_motion, require_motion
+from wristscan.daemon.procedure.progress import Progress, StepReport, stage_reporter
 
 if TYPE_CHECKING:
     from wristscan.daemon.procedure.acquisition import Acquisition
@@ -202,7 +202,7 @@ def calibrate_latency(
     speeds = _capped(opts.speeds_m_s, cap)
     plan = [(v, d) for v in speeds for _ in range(opts.repeats) for d in (1, -1)]
     total = len(plan) + 3
-    report = progress or no_progress
+    report = stage_reporter(progress, "latency")
     t_start = time.monotonic()
     report(0, total, "connecting, waiting for paired profiles")
 
@@ -248,7 +248,7 @@ def _sweep_plan(
     centre: FloatArray,
     plan: Sequence[tuple[float, int]],
     opts: LatencyOptions,
-    report: Progress,
+    report: StepReport,
 ) -> list[LatencySweep]:
     """One sweep over the ball at ``centre`` per ``(speed, direction)`` of ``plan``."""
     total = len(plan) + 3
@@ -274,7 +274,7 @@ def _sweep_again(
     bad: Sequence[int],
     est: LatencyEstimate,
     opts: LatencyOptions,
-    report: Progress,
+    report: StepReport,
 ) -> None:
     """Measure the sweeps ``bad`` (indices into ``sweeps``) again, replacing them in place."""
     step = len(sweeps) + 2

@@ -37,7 +37,6 @@ import dataclasses
 import logging
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -47,65 +46,36 @@ from numpy.typing import NDArray
 from wristscan.calib import se3
 from wristscan.calib.table import COV_ORDER, TableAxis, fit_table_axis, table_rotation
 from wristscan.daemon.calibrate.ball import BallMeasurement, BallScanner, ball_scanner
-from wristscan.daemon.calibrate.table_report import table_report
 from wristscan.daemon.config import Config
-from wristscan.daemon.io.atomic import write_atomic
 from wristscan.daemon.io.calibfile import Calibration, Residuals, identities
 from wristscan.daemon.procedure.errors import (
-    BallNotFound,
-    MotionNotConfirmed,
-    ProcedureAborted,
     ProcedureError,
 )
 from wristscan.daemon.procedure.in_force import (
-    calibration_in_force,
     load_sensor_calibration,
     procedure_acquisition,
-    procedure_config,
 )
 from wristscan.daemon.procedure.motion import (
     guarded_motion,
     require_motion,
-    wait_until_pairing,
 )
+from wristscan.daemon.procedure.progress import Progress, StepReport, stage_reporter
 
 if TYPE_CHECKING:
     from wristscan.daemon.procedure.acquisition import Acquisition
+
 __all__ = [
-    "BallNotFound",
-    "MotionNotConfirmed",
-    "ProcedureAborted",
-    "ProcedureError",
-    "Progress",
     "TableOptions",
     "TableResult",
     "calibrate_table",
-    "calibration_in_force",
     "direction_cov",
-    "guarded_motion",
-    "identities",
-    "load_sensor_calibration",
-    "no_progress",
-    "procedure_acquisition",
-    "procedure_config",
-    "require_motion",
     "table_calibration",
-    "table_report",  # TODO(lead): daemon/cli/_calibrate_table.py imports it from here
     "tilt_sigma_deg",
-    "wait_until_pairing",
-    "write_json_atomic",
 ]
 
 log = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
-
-Progress = Callable[[int, int, str], None]
-"""Progress callback: ``(steps done, steps in total, what happens now)``."""
-
-
-def no_progress(done: int, total: int, text: str) -> None:
-    """The :data:`Progress` callback of a caller that does not follow the progress."""
 
 
 @dataclass(frozen=True)
@@ -279,7 +249,7 @@ def _measure_angles(
     scanner: BallScanner,
     guess: FloatArray,
     opts: TableOptions,
-    report: Progress,
+    report: StepReport,
 ) -> tuple[list[BallMeasurement], list[float]]:
     """Turn the table through ``opts.plan`` from where it stands and measure the ball at every
     angle: one measurement per angle and its encoder angle, in measuring order."""
@@ -343,7 +313,7 @@ def calibrate_table(
     calib = load_sensor_calibration(cfg)
     s2f = np.asarray(calib.transform, dtype=np.float64)
     t_start = time.monotonic()
-    report = progress or no_progress
+    report = stage_reporter(progress, "table")
     report(0, len(opts.plan(0.0)) + 2, "connecting, waiting for paired profiles")
 
     with procedure_acquisition(cfg, acquisition) as acq:
@@ -409,7 +379,3 @@ def table_calibration(result: TableResult, cfg: Config) -> Calibration:
             f"calibration used: {result.sensor_calibration}"
         ),
     )
-
-
-# TODO(lead): the kit's old homes, until every importer uses wristscan.daemon.procedure.
-write_json_atomic = write_atomic

@@ -61,7 +61,7 @@ def _vec3(text: str | None, option: str) -> tuple[float, float, float] | None:
 
 def _run(fn: Callable[[], T]) -> T:
     """Run a procedure; its errors become one line on stderr and the exit code."""
-    from wristscan.daemon.calibrate.table import (
+    from wristscan.daemon.procedure.errors import (
         MotionNotConfirmed,
         ProcedureAborted,
         ProcedureError,
@@ -161,12 +161,8 @@ def table(
     the circle of ball centres gives the axis, its tilt and the encoder offset with their
     uncertainties. Nothing is written if it fails or is stopped.
     """
-    from wristscan.daemon.calibrate.table import (
-        TableOptions,
-        calibrate_table,
-        table_calibration,
-        table_report,
-    )
+    from wristscan.daemon.calibrate.table import TableOptions, calibrate_table, table_calibration
+    from wristscan.daemon.calibrate.table_report import table_report
     from wristscan.daemon.io.calibfile import write_calibration
 
     cfg = load_config_or_exit(config)

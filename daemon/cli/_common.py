@@ -15,12 +15,14 @@ import contextlib
 import signal
 import sys
 import threading
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from types import FrameType
 from typing import TYPE_CHECKING, Annotated, Any, NoReturn, overload
 
 import typer
+
+from wristscan.daemon.procedure.progress import Progress, ProgressEvent
 
 if TYPE_CHECKING:
     from wristscan.daemon.config import Config
@@ -133,12 +135,22 @@ def mm(value: float | None) -> float | None:
     return None if value is None else value * 1e-3
 
 
-def progress_printer(quiet: bool = False) -> Callable[[int, int, str], None]:
-    """A procedure's ``progress(done, total, text)``: one stage line per step on stderr."""
+def progress_printer(quiet: bool = False, *, err: bool = True, elapsed: bool = False) -> Progress:
+    """A procedure's :data:`~wristscan.daemon.procedure.progress.Progress`: one line per event
+    (``[stage step/total] message``) on stderr (``err``) or stdout; with ``elapsed`` the seconds
+    since the printer was made follow the count."""
+    import time
 
-    def line(done: int, total: int, text: str) -> None:
-        if not quiet:
-            typer.echo(f"[{done}/{total}] {text}", err=True)
+    t0 = time.monotonic()
+
+    def line(event: ProgressEvent) -> None:
+        if quiet:
+            return
+        text = str(event)
+        if elapsed:
+            head, _, message = text.partition("] ")
+            text = f"{head} {time.monotonic() - t0:5.1f} s] {message}"
+        typer.echo(text, err=err)
 
     return line
 

@@ -25,6 +25,7 @@ from wristscan.daemon.cli._common import (
     fail,
     load_config_or_exit,
     mm,
+    progress_printer,
     report_path,
 )
 
@@ -250,10 +251,7 @@ def _run_sensor(
     from wristscan.daemon.calibrate import sensor as cs
     from wristscan.drivers.base import DriverError, MotionNotEnabled
 
-    def progress(event: cs.ProgressEvent) -> None:
-        if not quiet:
-            typer.echo(str(event), err=True)
-
+    progress = progress_printer(quiet)
     try:
         return cs.run(
             cfg,

@@ -27,6 +27,7 @@ from wristscan.daemon.cli._common import (
     confirm_motion,
     fail,
     load_config_or_exit,
+    progress_printer,
 )
 
 scan_app = typer.Typer(
@@ -76,7 +77,7 @@ def scan(
         return
     if plan is None or config is None:
         fail("give --plan FILE and --config FILE (or: wristscan scan plan --help)", EXIT_USAGE)
-    from wristscan.daemon.scan.plan import PlanError, load_plan
+    from wristscan.daemon.scan.plan_file import PlanError, load_plan
 
     try:
         scan_plan = load_plan(plan)
@@ -105,7 +106,8 @@ def _dry_run(cfg: object, scan_plan: object, joints_deg: tuple[float, ...] | Non
 
     from wristscan.daemon.config import Config
     from wristscan.daemon.scan.job import ScanError, dry_run
-    from wristscan.daemon.scan.plan import ScanPlan, describe_plan
+    from wristscan.daemon.scan.plan import describe_plan
+    from wristscan.daemon.scan.plan_file import ScanPlan
 
     assert isinstance(cfg, Config) and isinstance(scan_plan, ScanPlan)
     q = None if joints_deg is None else [math.radians(a) for a in joints_deg]
@@ -135,10 +137,9 @@ def _run(
     max_deg: float,
     surface: bool,
 ) -> None:
-    import time
 
-    from wristscan.daemon.calibrate.table import ProcedureError
     from wristscan.daemon.config import Config
+    from wristscan.daemon.procedure.errors import ProcedureError
     from wristscan.daemon.scan.job import (
         MergeOptions,
         MotionNotConfirmed,
@@ -148,7 +149,8 @@ def _run(
         report_lines,
         run_scan,
     )
-    from wristscan.daemon.scan.plan import ScanPlan, describe_plan
+    from wristscan.daemon.scan.plan import describe_plan
+    from wristscan.daemon.scan.plan_file import ScanPlan
     from wristscan.drivers.base import DriverError
 
     assert isinstance(cfg, Config) and isinstance(scan_plan, ScanPlan)
@@ -161,11 +163,7 @@ def _run(
     )
     for line in describe_plan(scan_plan):
         typer.echo(line)
-    t0 = time.monotonic()
-
-    def progress(done: int, total: int, text: str) -> None:
-        typer.echo(f"[{done}/{total} {time.monotonic() - t0:5.1f} s] {text}")
-
+    progress = progress_printer(err=False, elapsed=True)
     try:
         result = run_scan(
             cfg, scan_plan, confirmed=True, out_dir=out, options=opts, progress=progress
@@ -228,7 +226,9 @@ def plan_cmd(
     out: Path | None = typer.Option(None, "--out", "-o", help="Write here (default: stdout)."),
 ) -> None:
     """Generate a plan of parallel linear passes over a box (prints TOML)."""
-    from wristscan.daemon.scan.plan import PlanError, describe_plan, generate_plan, plan_to_toml
+    from wristscan.daemon.scan.plan import describe_plan
+    from wristscan.daemon.scan.plan_file import PlanError, plan_to_toml
+    from wristscan.daemon.scan.plan_generate import generate_plan
 
     if frame not in ("part", "base"):
         fail(f"--frame must be part or base, not {frame!r}", EXIT_USAGE)

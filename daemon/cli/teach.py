@@ -36,7 +36,7 @@ from wristscan.daemon.cli._common import (
 if TYPE_CHECKING:
     from wristscan.calib.edge import EdgeModel
     from wristscan.daemon.config import Config
-    from wristscan.daemon.teach.edge import LearnedPath
+    from wristscan.daemon.teach.edge_path import LearnedPath
     from wristscan.daemon.teach.replay import ReplayOptions, ReplayPlan, ToolDef
 __all__ = ["register", "teach_app"]
 
@@ -77,7 +77,7 @@ def plane_cmd(
     """Teach the frame of a tilted work surface: the robot visits spots above it from where the
     sensor is now, a robust plane fit gives the surface, the frame is saved and printed as a UR
     pose to enter as a plane feature."""
-    from wristscan.daemon.calibrate.table import MotionNotConfirmed, ProcedureError
+    from wristscan.daemon.procedure.errors import MotionNotConfirmed, ProcedureError
     from wristscan.daemon.teach.plane import PlaneOptions, teach_plane, write_plane_frame
 
     try:
@@ -132,9 +132,9 @@ def measure_cmd(
     """Standoff and surface normal under the sensor (distance sensing for guidance and for
     teaching locations precisely)."""
     from wristscan.calib import se3
-    from wristscan.daemon.calibrate.table import MotionNotConfirmed, ProcedureError
-    from wristscan.daemon.io.calibfile import ur_pose_text
-    from wristscan.daemon.teach.plane import measure
+    from wristscan.daemon.io.urpose import ur_pose_text
+    from wristscan.daemon.procedure.errors import MotionNotConfirmed, ProcedureError
+    from wristscan.daemon.teach.measure import measure
 
     if dwell_s <= 0 or sweep_mm < 0:
         fail("--dwell-s must be positive and --sweep-mm >= 0", EXIT_USAGE)
@@ -217,8 +217,9 @@ def edge_model_cmd(
     """Teach an edge model from an example edge under the sensor (the laser line across it;
     nothing moves): its kind, height or angle and side, for teach edge --edge-model."""
     from wristscan.calib.edge import EDGE_KINDS
-    from wristscan.daemon.calibrate.table import ProcedureError, write_json_atomic
-    from wristscan.daemon.teach.edge import model_toml, teach_edge_model
+    from wristscan.daemon.io.atomic import write_atomic
+    from wristscan.daemon.procedure.errors import ProcedureError
+    from wristscan.daemon.teach.edge_model import model_toml, teach_edge_model
 
     if kind not in EDGE_KINDS:
         fail(f"--kind must be one of {', '.join(EDGE_KINDS)}", EXIT_USAGE)
@@ -229,7 +230,7 @@ def edge_model_cmd(
         fail(str(exc), EXIT_FAILED)
     text = model_toml(model)
     typer.echo(text.rstrip())
-    typer.echo(f"edge model    {write_json_atomic(out, text)}")
+    typer.echo(f"edge model    {write_atomic(out, text)}")
 
 
 @teach_app.command("edge")
@@ -254,8 +255,9 @@ def edge_cmd(
     """Learn the 3D path of an edge: the robot follows it under closed-loop guidance (edge kept
     in the middle of the laser line at a set standoff, sensor normal to the surface) and records
     it in the base frame at the resolution asked, with the surface normal at each point."""
-    from wristscan.daemon.calibrate.table import MotionNotConfirmed, ProcedureError
-    from wristscan.daemon.teach.edge import EdgeOptions, learn_edge, write_edge_path
+    from wristscan.daemon.procedure.errors import MotionNotConfirmed, ProcedureError
+    from wristscan.daemon.teach.edge import EdgeOptions, learn_edge
+    from wristscan.daemon.teach.edge_path import write_edge_path
 
     if direction not in (1, -1):
         fail("--direction must be 1 or -1", EXIT_USAGE)
@@ -419,7 +421,7 @@ def _replay_options(
 
 
 def _read_learned(path: Path) -> LearnedPath:
-    from wristscan.daemon.teach.edge import PathFileError, read_edge_path
+    from wristscan.daemon.teach.edge_path import PathFileError, read_edge_path
 
     try:
         return read_edge_path(path)

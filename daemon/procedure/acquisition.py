@@ -13,8 +13,8 @@ Recording stops at the end of the block, after the profiles exposed inside it ha
 (the synchroniser waits for the robot states that bracket them).
 
 The procedures open it with :func:`open_retrying` (a device that does not answer in time is
-tried again) and move inside :func:`stop_on_failure`, which stops the robot (and the table) when
-anything goes wrong.
+tried again) and move inside :func:`wristscan.daemon.procedure.motion.guarded_motion`, which
+stops the robot (and the table) when anything goes wrong.
 """
 
 from __future__ import annotations
@@ -33,9 +33,10 @@ from numpy.typing import NDArray
 from wristscan.daemon.config import Config
 from wristscan.daemon.devices import Devices, make_devices, pairer_config, robot_model
 from wristscan.daemon.service.pipeline import AlignmentSetup, Pipeline, PipelineSettings
-from wristscan.daemon.sync.pairing import PairedBatch, Pairer
+from wristscan.daemon.sync.batch import PairedBatch
+from wristscan.daemon.sync.pairing import Pairer
 
-__all__ = ["Acquisition", "Recording", "Sweep", "open_retrying", "stop_on_failure"]
+__all__ = ["Acquisition", "Recording", "Sweep", "open_retrying"]
 
 log = logging.getLogger(__name__)
 
@@ -260,26 +261,3 @@ def open_retrying(make: Callable[[], _D], attempts: int = 1) -> _D:
                 raise
             log.warning("%s; trying again", exc)
     raise AssertionError("unreachable")
-
-
-@contextmanager
-def stop_on_failure(
-    acq: Acquisition,
-    abort: Callable[[str], BaseException],
-    also: tuple[type[BaseException], ...] = (),
-    *,
-    table: bool = True,
-) -> Iterator[None]:
-    """Stop the robot (and, with ``table``, the table) when anything escapes the block. A driver
-    error, Ctrl-C or an exception of the types ``also`` is then raised as ``abort(reason)``
-    (from it; ``reason`` is "interrupted" for Ctrl-C, else its text); anything else as it is."""
-    from wristscan.drivers.base import DriverError
-
-    try:
-        yield
-    except BaseException as exc:
-        acq.stop_motion(table=table)
-        if not isinstance(exc, (DriverError, KeyboardInterrupt, *also)):
-            raise
-        reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else str(exc)
-        raise abort(reason) from exc

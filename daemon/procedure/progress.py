@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-__all__ = ["Progress", "ProgressEvent", "no_progress", "stage_reporter"]
+__all__ = ["Progress", "ProgressEvent", "StepReport", "no_progress", "stage_reporter"]
 
 
 @dataclass(frozen=True)
@@ -35,7 +35,11 @@ def no_progress(event: ProgressEvent) -> None:
     """The :data:`Progress` callback of a caller that does not follow the progress."""
 
 
-def stage_reporter(progress: Progress | None, stage: str) -> Callable[[int, int, str], None]:
+StepReport = Callable[[int, int, str], None]
+"""``report(step, total, message)`` within one stage, as :func:`stage_reporter` makes it."""
+
+
+def stage_reporter(progress: Progress | None, stage: str) -> StepReport:
     """``report(step, total, message)`` sending :class:`ProgressEvent` of ``stage`` to
     ``progress`` (nothing when it is None): the shape most procedure loops count in."""
     sink = progress or no_progress

@@ -30,25 +30,15 @@ from wristscan.daemon.scan.plan_file import (
     Orientation,
     PlanError,
     ScanPlan,
-    load_plan,
-    plan_to_toml,
 )
-from wristscan.daemon.scan.plan_generate import generate_plan
 
-# TODO(lead): daemon/cli/scan.py, daemon/scan/job.py and daemon/scan/record.py import the plan
-# model, its file and its generation from here; their homes are .plan_file and .plan_generate.
 __all__ = [
     "CellGeometry",
     "PassCheck",
     "PlanCheck",
-    "PlanError",
     "ResolvedPass",
-    "ScanPlan",
     "check_plan",
     "describe_plan",
-    "generate_plan",
-    "load_plan",
-    "plan_to_toml",
     "resolve_plan",
 ]
 

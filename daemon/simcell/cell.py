@@ -140,8 +140,7 @@ def write_truth_calibrations(
     ``cfg`` (no cell needed). Returns the files written; ValueError without ``[calibration]
     file``."""
     from wristscan.calib import se3
-    from wristscan.daemon.io.calibfile import identities
-    from wristscan.daemon.io.calibfile import Calibration, Residuals, write_calibration
+    from wristscan.daemon.io.calibfile import Calibration, Residuals, identities, write_calibration
 
     c = cfg.calibration
     if c.file is None:

@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wristscan.calib import kinematics, se3
+from wristscan.calib.merge import voxel_mean
 from wristscan.daemon.cloud.client import CloudClient
 from wristscan.daemon.config import Config, load_config
 from wristscan.daemon.simcell.cell import (
@@ -33,7 +34,7 @@ from wristscan.daemon.simcell.cell import (
     write_truth_calibrations,
 )
 
-__all__ = ["DemoResult", "run_demo", "voxel_downsample"]
+__all__ = ["DemoResult", "run_demo"]
 
 log = logging.getLogger(__name__)
 
@@ -57,17 +58,6 @@ class DemoResult:
     top_flatness_m: float
     pass_offsets_m: list[float] = field(default_factory=list)
     stats: dict[str, Any] = field(default_factory=dict)
-
-
-def voxel_downsample(xyz: NDArray[np.floating], voxel_m: float) -> NDArray[np.float32]:
-    """One point per occupied voxel (the mean of its points), vectorised."""
-    if xyz.shape[0] == 0:
-        return np.zeros((0, 3), np.float32)
-    keys = np.floor(xyz / voxel_m).astype(np.int64)
-    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    sums = np.zeros((counts.shape[0], 3))
-    np.add.at(sums, inverse.ravel(), xyz)
-    return (sums / counts[:, None]).astype(np.float32)
 
 
 class _Collector:
@@ -144,29 +134,7 @@ def run_demo(
             finally:
                 collector.stop()
             stats = client.query("stats")
-        chunks = collector.chunks
-        if not chunks:
-            raise RuntimeError("the daemon published no points during the passes")
-        xyz = np.concatenate([c for _, c in chunks]).astype(np.float64)
-        seqs = np.array(sorted(set(collector.seqs)))
-        lost = int(seqs[-1] - seqs[0] + 1 - seqs.size) if seqs.size else 0
-        merged = voxel_downsample(xyz, voxel_m)
-        from wristscan.daemon.io.ply import write_ply
-
-        write_ply(out, merged)
-        height, flat = _top_face(xyz, truth)
-        return DemoResult(
-            out=out,
-            passes=len(offsets),
-            points_received=int(xyz.shape[0]),
-            points_written=int(merged.shape[0]),
-            batches=int(seqs.size),
-            lost_batches=lost,
-            top_height_m=height,
-            top_flatness_m=flat,
-            pass_offsets_m=offsets,
-            stats=stats,
-        )
+        return _write_result(out, collector, offsets, stats, truth, voxel_m)
     finally:
         if daemon is not None:
             daemon.terminate()
@@ -177,6 +145,41 @@ def run_demo(
                 daemon.wait()
         cell.stop()
         tmp.cleanup()
+
+
+def _write_result(
+    out: Path,
+    collector: _Collector,
+    offsets: list[float],
+    stats: dict[str, Any],
+    truth: dict[str, Any],
+    voxel_m: float,
+) -> DemoResult:
+    """Merge the clouds the passes received, write them to ``out`` (PLY) and measure them."""
+    chunks = collector.chunks
+    if not chunks:
+        raise RuntimeError("the daemon published no points during the passes")
+    xyz = np.concatenate([c for _, c in chunks]).astype(np.float64)
+    seqs = np.array(sorted(set(collector.seqs)))
+    lost = int(seqs[-1] - seqs[0] + 1 - seqs.size) if seqs.size else 0
+    # The grid starts at the coordinate origin (the same voxels whatever the points).
+    merged = voxel_mean(xyz, voxel_m, grid="origin")[0].astype(np.float32)
+    from wristscan.daemon.io.ply import write_ply
+
+    write_ply(out, merged)
+    height, flat = _top_face(xyz, truth)
+    return DemoResult(
+        out=out,
+        passes=len(offsets),
+        points_received=int(xyz.shape[0]),
+        points_written=int(merged.shape[0]),
+        batches=int(seqs.size),
+        lost_batches=lost,
+        top_height_m=height,
+        top_flatness_m=flat,
+        pass_offsets_m=offsets,
+        stats=stats,
+    )
 
 
 def _scan_passes(

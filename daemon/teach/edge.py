@@ -49,40 +49,23 @@ from numpy.typing import NDArray
 
 from wristscan.calib import se3
 from wristscan.calib.edge import EdgeDetection, EdgeModel, smooth_path
-from wristscan.daemon.calibrate.table import Progress, no_progress
 from wristscan.daemon.config import Config
 from wristscan.daemon.procedure.in_force import load_sensor_calibration
 from wristscan.daemon.procedure.motion import require_motion
+from wristscan.daemon.procedure.progress import Progress, stage_reporter
 from wristscan.daemon.teach.edge_model import (
     RawEdge,
     detections_from_sweep,
-    model_toml,
-    teach_edge_model,
 )
 from wristscan.daemon.teach.edge_path import (
     EdgeResult,
-    LearnedPath,
-    PathFileError,
-    read_edge_path,
-    write_edge_path,
 )
 from wristscan.daemon.teach.kit import Mover, TeachError, guarded, record_still, teach_acquisition
 
 if TYPE_CHECKING:
     from wristscan.daemon.procedure.acquisition import Acquisition, Sweep
 
-# TODO(lead): daemon/cli/teach.py still imports the path file and model names from here; their
-# homes are .edge_path and .edge_model.
-__all__ = [
-    "EdgeOptions",
-    "LearnedPath",
-    "PathFileError",
-    "learn_edge",
-    "model_toml",
-    "read_edge_path",
-    "teach_edge_model",
-    "write_edge_path",
-]
+__all__ = ["EdgeOptions", "learn_edge"]
 
 log = logging.getLogger(__name__)
 
@@ -228,7 +211,7 @@ def learn_edge(
     require_motion(cfg, confirmed)
     calib = load_sensor_calibration(cfg)
     s2f = np.asarray(calib.transform, dtype=np.float64)
-    report = progress or no_progress
+    report = stage_reporter(progress, "edge")
     total = max(1, math.ceil(opts.length_m / opts.step_m))
     t0 = time.monotonic()
     report(0, total, "connecting, waiting for paired profiles")

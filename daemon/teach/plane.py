@@ -45,12 +45,12 @@ from numpy.typing import NDArray
 
 from wristscan.calib import se3
 from wristscan.calib.plane import PlaneFit, fit_plane, plane_frame
-from wristscan.daemon.calibrate.table import Progress, no_progress
 from wristscan.daemon.config import Config
 from wristscan.daemon.io.atomic import write_atomic
 from wristscan.daemon.io.urpose import ur_pose_text
 from wristscan.daemon.procedure.in_force import load_sensor_calibration
 from wristscan.daemon.procedure.motion import require_motion
+from wristscan.daemon.procedure.progress import Progress, stage_reporter
 from wristscan.daemon.teach.kit import (
     Mover,
     TeachError,
@@ -60,7 +60,7 @@ from wristscan.daemon.teach.kit import (
     record_still,
     teach_acquisition,
 )
-from wristscan.daemon.teach.measure import MIN_SURFACE_POINTS, measure, measure_surface
+from wristscan.daemon.teach.measure import MIN_SURFACE_POINTS, measure_surface
 
 if TYPE_CHECKING:
     from wristscan.daemon.procedure.acquisition import Sweep
@@ -69,7 +69,6 @@ __all__ = [
     "PlaneOptions",
     "PlaneResult",
     "Spot",
-    "measure",  # TODO(lead): daemon/cli/teach.py imports it from here; its home is .measure
     "plane_from_spots",
     "read_plane_frame",
     "teach_plane",
@@ -293,7 +292,7 @@ def teach_plane(
     require_motion(cfg, confirmed)
     calib = load_sensor_calibration(cfg)
     s2f = np.asarray(calib.transform, dtype=np.float64)
-    report = progress or no_progress
+    report = stage_reporter(progress, "plane")
     layout = opts.layout()
     total = len(layout) + 1
     t0 = time.monotonic()

@@ -50,11 +50,11 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from wristscan.calib import kinematics, se3
-from wristscan.daemon.calibrate.table import Progress, no_progress
 from wristscan.daemon.config import Config
 from wristscan.daemon.io.atomic import write_atomic
 from wristscan.daemon.io.urpose import parse_ur_pose, ur_pose_text
 from wristscan.daemon.procedure.errors import ProcedureError
+from wristscan.daemon.procedure.progress import Progress, stage_reporter
 
 if TYPE_CHECKING:
     from wristscan.daemon.teach.edge_path import LearnedPath
@@ -514,7 +514,7 @@ def run_program(
 
     if not cfg.robot.motion_enabled:
         raise ReplayError(f"{cfg.source}: [robot] motion_enabled is false: the replay moves it")
-    report = progress or no_progress
+    report = stage_reporter(progress, "replay")
     host = cfg.robot.host
     try:
         robot: Any = open_retrying(lambda: make_devices(cfg).robot, attempts=3)

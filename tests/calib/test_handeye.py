@@ -10,6 +10,7 @@ import pytest
 
 from wristscan.calib import handeye, se3, synthetic
 from wristscan.calib.handeye import PoorlyConstrained, Sweep
+from wristscan.calib.handeye_points import PointStack, right_jacobian
 
 # Ground truth near the paper's simulated TCP (60, 10, 200) mm, with a small rotation.
 X_TRUE = se3.make(se3.rotvec_to_matrix([0.012, -0.018, 0.025]), [0.060, 0.010, 0.200])
@@ -127,7 +128,7 @@ def test_orientation_step_with_three_fov_locations(rng: np.random.Generator) -> 
 
 def test_analytic_jacobian_matches_finite_differences(rng: np.random.Generator) -> None:
     data = make(rng, grid=GRID[:2], orientations=synthetic.tilt_orientations(R0)[:1])
-    st = handeye._Stack.build(data.all)
+    st = PointStack.build(data.all)
     Rb = X_TRUE[:3, :3]
     x = np.concatenate([[0.02, -0.01, 0.03], X_TRUE[:3, 3] + 1e-3, BALL_C - 2e-3, [BALL_R]])
 
@@ -135,7 +136,7 @@ def test_analytic_jacobian_matches_finite_differences(rng: np.random.Generator) 
         return st.residuals(Rb @ se3.rotvec_to_matrix(v[:3]), v[3:6], v[6:9], v[9])
 
     J = st.jacobian(Rb @ se3.rotvec_to_matrix(x[:3]), x[3:6], x[6:9], True,
-                    handeye._right_jacobian(x[:3]))  # fmt: skip
+                    right_jacobian(x[:3]))  # fmt: skip
     h = 1e-7
     Jn = np.stack([(fun(x + h * e) - fun(x - h * e)) / (2 * h) for e in np.eye(10)], axis=1)
     np.testing.assert_allclose(J, Jn, atol=1e-6)

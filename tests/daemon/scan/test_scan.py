@@ -16,33 +16,23 @@ import pytest
 from typer.testing import CliRunner
 
 from wristscan.calib import kinematics, se3
+from wristscan.calib.merge import MergeOptions, PassCloud, merge_passes, voxel_mean
 from wristscan.daemon.cli.app import app
 from wristscan.daemon.config import Config, load_config
-from wristscan.daemon.scan.job import (
-    MergeOptions,
-    PassCloud,
-    PlanRejected,
-    ScanCalibration,
-    SurfaceUnavailable,
-    align_passes,
-    merge_passes,
-    poisson_surface,
-    run_scan,
-    voxel_mean,
-)
-from wristscan.daemon.scan.plan import (
-    CellGeometry,
+from wristscan.daemon.scan.errors import PlanRejected, SurfaceUnavailable
+from wristscan.daemon.scan.job import ScanCalibration, align_passes, run_scan
+from wristscan.daemon.scan.output import poisson_surface
+from wristscan.daemon.scan.plan import CellGeometry, check_plan, resolve_plan
+from wristscan.daemon.scan.plan_file import (
     LinearPass,
     PlanError,
     ScanPlan,
-    check_plan,
     down_matrix,
-    generate_plan,
     load_plan,
     parse_plan,
     plan_to_toml,
-    resolve_plan,
 )
+from wristscan.daemon.scan.plan_generate import generate_plan
 from wristscan.daemon.simcell.cell import dump_toml, free_sim_config, write_truth_calibrations
 
 Q_HOME = np.radians([0.0, -90.0, 90.0, -90.0, -90.0, 0.0])

@@ -1,0 +1,131 @@
+"""The files of a scan job: each pass corrected and down-sampled as binary PLY with
+sensor-facing normals, the merged cloud, an NPZ with everything, the JSON report, and
+optionally a screened Poisson surface (the ``surface`` extra: pymeshlab, MeshLab's own
+filters)."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from wristscan.calib.merge import (
+    MergeOptions,
+    MergeResult,
+    PassCloud,
+    corrected_clouds,
+    merged_cloud,
+    oriented_normals,
+    voxel_mean,
+)
+from wristscan.daemon.scan.errors import ScanError, SurfaceUnavailable
+
+__all__ = ["poisson_surface", "write_outputs"]
+
+FloatArray = NDArray[np.float64]
+
+
+def write_outputs(
+    out_dir: Path,
+    clouds: Sequence[PassCloud],
+    merge: MergeResult | None,
+    opts: MergeOptions,
+    report: dict[str, Any],
+) -> list[Path]:
+    """Write ``pass_NN.ply`` (each pass, corrected), ``merged.ply``, ``scan.npz``,
+    ``report.json`` and, with ``opts.surface``, ``surface.ply`` into ``out_dir``."""
+    from wristscan.daemon.io.ply import write_ply
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    files: list[Path] = []
+    fixed = corrected_clouds(clouds, merge)
+    frame = report.get("frame", "?")
+    npz: dict[str, Any] = {}
+    for c in fixed:
+        v, o = voxel_mean(c.xyz, opts.voxel_m, c.origins)
+        nrm = oriented_normals(v, o, opts.normals_k)
+        path = out_dir / f"pass_{c.index + 1:02d}.ply"
+        write_ply(
+            path,
+            v,
+            normals=nrm,
+            comments=[f"wristscan scan pass {c.index + 1}: {c.label}", f"frame {frame}, metres"],
+        )
+        files.append(path)
+        npz[f"pass_{c.index + 1:02d}_xyz"] = v.astype(np.float32)
+        npz[f"pass_{c.index + 1:02d}_normals"] = nrm.astype(np.float32)
+    xyz, normals = merged_cloud(fixed, opts.voxel_m, opts.normals_k)
+    path = out_dir / "merged.ply"
+    write_ply(
+        path,
+        xyz,
+        normals=normals,
+        comments=[
+            f"wristscan scan: {len(fixed)} passes merged, frame {frame}, metres",
+            f"voxel {opts.voxel_m * 1e3:g} mm, ICP {'on' if merge is not None else 'off'}",
+        ],
+    )
+    files.append(path)
+    npz["merged_xyz"] = xyz.astype(np.float32)
+    npz["merged_normals"] = normals.astype(np.float32)
+    if merge is not None:
+        npz["corrections"] = np.stack([c.transform for c in merge.corrections])
+        npz["correction_pass"] = np.array([c.index + 1 for c in merge.corrections])
+    npz["report_json"] = np.array(json.dumps(report))
+    path = out_dir / "scan.npz"
+    np.savez_compressed(path, **npz)
+    files.append(path)
+    if opts.surface:
+        path = out_dir / "surface.ply"
+        faces = poisson_surface(xyz, normals, path, opts.surface_depth, opts.surface_trim_m)
+        report["surface"] = {"file": path.name, "faces": faces, "depth": opts.surface_depth}
+        files.append(path)
+    path = out_dir / "report.json"
+    path.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    files.append(path)
+    return files
+
+
+def poisson_surface(
+    xyz: FloatArray,
+    normals: FloatArray,
+    path: Path,
+    depth: int = 9,
+    trim_m: float = 0.001,
+) -> int:
+    """Screened Poisson surface of an oriented cloud (MeshLab's filter, through pymeshlab),
+    with the triangles farther than ``trim_m`` from the cloud removed (Poisson closes the
+    surface where there are no points); written as binary PLY. Returns the face count.
+    Raises :class:`SurfaceUnavailable` when pymeshlab is not installed."""
+    try:
+        import pymeshlab  # type: ignore[import-not-found,unused-ignore]
+    except ImportError:
+        raise SurfaceUnavailable(
+            "the surface model needs the optional dependency pymeshlab: "
+            "pip install 'wristscan[surface]'"
+        ) from None
+    if xyz.shape[0] < 100:
+        raise ScanError(f"too few points for a surface ({xyz.shape[0]})")
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=xyz, v_normals_matrix=normals))
+    ms.generate_surface_reconstruction_screened_poisson(depth=depth, preclean=True)
+    mesh = ms.current_mesh()
+    verts = np.asarray(mesh.vertex_matrix(), dtype=np.float64)
+    faces = np.asarray(mesh.face_matrix(), dtype=np.int64)
+    dist, _ = cKDTree(xyz).query(verts, k=1)
+    near = dist <= trim_m
+    keep = near[faces].all(axis=1)
+    faces = faces[keep]
+    used = np.unique(faces)
+    remap = np.full(verts.shape[0], -1, dtype=np.int64)
+    remap[used] = np.arange(used.size)
+    out = pymeshlab.MeshSet()
+    out.add_mesh(pymeshlab.Mesh(vertex_matrix=verts[used], face_matrix=remap[faces]))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    out.save_current_mesh(str(path), binary=True, save_vertex_normal=False)
+    return int(faces.shape[0])
