@@ -21,7 +21,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parents[1] / "tests"))
 from _report import Figure, report
+from support import sample_surface
 
 from wristscan.calib import align, icp, se3, table
 
@@ -130,28 +132,16 @@ def _align_figures() -> list[Figure]:
     ]
 
 
-def _surface(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    bump = 0.005 * np.exp(-((x - 0.01) ** 2 + (y + 0.015) ** 2) / (2 * 0.01**2))
-    return 3.0 * x**2 + 1.0 * y**2 + 2.0 * x**3 + bump
-
-
-def _sample(rng: np.random.Generator, x_range: tuple[float, float], step: float) -> np.ndarray:
-    gx, gy = np.meshgrid(np.arange(*x_range, step), np.arange(-0.04, 0.04, step))
-    x = gx.ravel() + rng.uniform(-step / 3, step / 3, gx.size)
-    y = gy.ravel() + rng.uniform(-step / 3, step / 3, gx.size)
-    return np.column_stack([x, y, _surface(x, y)])
-
-
 def _icp_figures() -> list[Figure]:
     rng = np.random.default_rng(5)
-    target = _sample(rng, (-0.03, 0.045), 0.0008)
+    target = sample_surface(rng, (-0.03, 0.045), 0.0008)
     w = np.array([0.5, 0.7, -0.2])
     t = np.array([0.6, -0.3, 0.74])
     truth = se3.make(
         se3.rotvec_to_matrix(np.deg2rad(0.2) * w / np.linalg.norm(w)),
         0.3e-3 * t / np.linalg.norm(t),
     )
-    source = se3.apply(se3.invert(truth), _sample(rng, (-0.045, 0.03), 0.0011))
+    source = se3.apply(se3.invert(truth), sample_surface(rng, (-0.045, 0.03), 0.0011))
     figures: list[Figure] = []
     for label, noise in (("noise-free", 0.0), ("10 um noise", 10e-6)):
         tgt = target + rng.normal(scale=noise, size=target.shape) if noise else target

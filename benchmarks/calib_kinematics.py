@@ -19,7 +19,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parents[1] / "tests"))
 from _report import Figure, report
+from support import REAL_UR10E
 
 from wristscan.calib import kinematics as kin
 from wristscan.calib import se3
@@ -27,19 +29,6 @@ from wristscan.calib import se3
 N_FORWARD = 100_000
 SPEEDUP_TARGET = 20.0
 IK_ERROR_TARGET = 1e-9
-
-# KinematicsInfo of a real UR10e (Universal_Robots_ROS2_Driver ur_calibration/doc/algorithm.rst).
-REAL_UR10E = kin.from_kinematics_info(
-    theta=[-2.4147806894359e-07, 1.60233952386695, -1.68607190752171, 0.0837331147700119,
-           -1.01260355871158e-07, 3.91986209186124e-08],
-    a=[2.12234865571206e-05, 0.0193171326277006, -0.569251663611088, -4.61409023720934e-05,
-       -6.39280053471802e-05, 0.0],
-    d=[0.180539811714259, 439.140974079901, -446.027059806332, 7.0603368964236,
-       0.119811341150314, 0.115670917257426],
-    alpha=[1.57014608044242, 0.0013941666682559, 0.00693818880325995, 1.56998468543761,
-           -1.57038520649543, 0.0],
-    name="real UR10e",
-)  # fmt: skip
 
 
 def _median_seconds(fn: Callable[[], object], runs: int) -> float:

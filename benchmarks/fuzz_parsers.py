@@ -31,7 +31,9 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parents[1] / "tests"))
 from _report import Figure, report
+from support import same_profile
 
 from wristscan.drivers import lpf1, lpf1_reader, rf627, scip
 from wristscan.drivers.records import Profile
@@ -121,22 +123,6 @@ class Outcome:
     @property
     def n_escaped(self) -> int:
         return sum(self.escaped.values())
-
-
-def same_profile(a: Profile, b: Profile) -> bool:
-    def eq(x: Any, y: Any) -> bool:
-        if x is None or y is None:
-            return x is None and y is None
-        return bool(np.array_equal(x, y, equal_nan=x.dtype.kind == "f"))
-
-    return (
-        (a.sensor_id, a.frame_counter, a.sensor_time_ns, a.encoder)
-        == (b.sensor_id, b.frame_counter, b.sensor_time_ns, b.encoder)
-        and eq(a.y, b.y)
-        and eq(a.z, b.z)
-        and eq(a.valid, b.valid)
-        and eq(a.intensity, b.intensity)
-    )
 
 
 def run_parser(

@@ -482,3 +482,7 @@ class RotaryTable(Device[TableState]):
     @abstractmethod
     def move_to(self, angle_rad: float, wait: bool = True, timeout_s: float = 30.0) -> None:
         """Turn to ``angle_rad``; with ``wait`` return once it has arrived."""
+
+    @abstractmethod
+    def stop(self) -> None:
+        """Stop turning (the procedures' guard calls it after a failure)."""

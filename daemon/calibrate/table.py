@@ -253,7 +253,8 @@ def _measure_angles(
 ) -> tuple[list[BallMeasurement], list[float]]:
     """Turn the table through ``opts.plan`` from where it stands and measure the ball at every
     angle: one measurement per angle and its encoder angle, in measuring order."""
-    theta0 = float(acq.table.angle())
+    table = acq.require_table("the table calibration turns it")
+    theta0 = float(table.angle())
     plan = opts.plan(theta0)
     total = len(plan) + 1
     centres: list[FloatArray] = []
@@ -262,9 +263,9 @@ def _measure_angles(
     for i, target in enumerate(plan):
         if i > 0:
             report(i, total, f"turning the table to {math.degrees(target):.1f} deg")
-            acq.table.move_to(target, wait=True)
+            table.move_to(target, wait=True)
             time.sleep(opts.settle_s)
-        theta = float(acq.table.angle())
+        theta = float(table.angle())
         expected = guess if i == 0 else _predict(centres, angles, theta)
         margin = opts.search_margin_m if len(centres) < 3 else opts.margin_m
         report(i, total, f"sweeping over the ball at {math.degrees(theta):.1f} deg")

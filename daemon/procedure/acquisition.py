@@ -32,9 +32,11 @@ from numpy.typing import NDArray
 
 from wristscan.daemon.config import Config
 from wristscan.daemon.devices import Devices, make_devices, pairer_config, robot_model
+from wristscan.daemon.procedure.errors import ProcedureError
 from wristscan.daemon.service.pipeline import AlignmentSetup, Pipeline, PipelineSettings
 from wristscan.daemon.sync.batch import PairedBatch
 from wristscan.daemon.sync.pairing import Pairer
+from wristscan.drivers.base import Robot, RotaryTable
 
 __all__ = ["Acquisition", "Recording", "Sweep", "open_retrying"]
 
@@ -156,12 +158,19 @@ class Acquisition:
         return self._pipeline
 
     @property
-    def robot(self) -> Any:
+    def robot(self) -> Robot:
         """The robot driver (motion commands: ``move_l``, ``move_j``, ``stop``...)."""
         return self.devices.robot
 
     @property
-    def table(self) -> Any:
+    def table(self) -> RotaryTable | None:
+        """The rotary table; None when the configuration has none."""
+        return self.devices.table
+
+    def require_table(self, needed_for: str) -> RotaryTable:
+        """The rotary table; :class:`ProcedureError` naming ``needed_for`` when there is none."""
+        if self.devices.table is None:
+            raise ProcedureError(f"{self.cfg.source}: no [table] is configured: {needed_for}")
         return self.devices.table
 
     def _offer(self, batch: PairedBatch) -> None:
@@ -226,12 +235,10 @@ class Acquisition:
         """Stop the robot and, with ``table``, the table, as after a failure: a stop that fails
         is logged, not raised (the other device must still be stopped, and the error that led
         here matters more)."""
-        stops = [("robot", self.robot.stop)]
-        if table:
-            stops.append(("table", getattr(self.table, "stop", None)))
+        stops: list[tuple[str, Callable[[], None]]] = [("robot", self.robot.stop)]
+        if table and self.table is not None:
+            stops.append(("table", self.table.stop))
         for name, stop in stops:
-            if stop is None:
-                continue
             try:
                 stop()
             except Exception as exc:

@@ -353,11 +353,12 @@ def _turn_table(
 ) -> None:
     """Turn the table to the pass's angle unless it stands there already."""
     assert rp.table_angle_rad is not None
-    here = float(acq.table.angle())
+    table = acq.require_table(f"{rp.label} is at a table angle")
+    here = float(table.angle())
     if angle_diff(here, rp.table_angle_rad) > TABLE_STILL_RAD:
         deg = math.degrees(rp.table_angle_rad)
         report(rp.index + 1, total, f"turning the table to {deg:.1f} deg")
-        acq.table.move_to(rp.table_angle_rad, wait=True)
+        table.move_to(rp.table_angle_rad, wait=True)
         time.sleep(settle_s)
 
 

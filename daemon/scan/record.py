@@ -91,15 +91,16 @@ def _record_pass(acq: Acquisition, geom: CellGeometry, rp: ResolvedPass) -> Reco
     """Record the linear moves of one pass; the table must not turn meanwhile."""
     robot = acq.robot
     accel = acq.cfg.robot.max_accel_m_s2
-    before = float(acq.table.angle()) if acq.table is not None else None
+    table = acq.table
+    before = float(table.angle()) if table is not None else None
     t0 = time.monotonic()
     with acq.record() as rec:
         for pose in rp.sensor2base[1:]:
             robot.move_l(ur_pose(geom, pose), rp.speed_m_s, accel)
     sweep = rec.result()
     angle: float | None = None
-    if before is not None:
-        after = float(acq.table.angle())
+    if table is not None and before is not None:
+        after = float(table.angle())
         if angle_diff(before, after) > TABLE_STILL_RAD:
             raise ScanError(
                 f"{rp.label}: the table turned during the pass "

@@ -27,6 +27,7 @@ from wristscan.daemon.io.calibfile import (
     CalibrationFileError,
     RobotIdentity,
     SensorIdentity,
+    identities,
     read_calibration,
 )
 from wristscan.daemon.service.notify import Notifier, Watchdog
@@ -44,12 +45,9 @@ class StartupError(RuntimeError):
 
 
 def _identities(cfg: Config) -> tuple[RobotIdentity | None, SensorIdentity | None]:
-    if not cfg.calibration.check_identity:
-        return None, None
-    sid = cfg.sensor.sensor_id
-    return RobotIdentity(cfg.robot.model), SensorIdentity(
-        cfg.sensor.driver, None if sid is None else str(sid)
-    )
+    """The identities a calibration file must match, or (None, None) when the configuration
+    does not check them."""
+    return identities(cfg) if cfg.calibration.check_identity else (None, None)
 
 
 def load_setup(cfg: Config, uncalibrated: bool = False) -> AlignmentSetup:

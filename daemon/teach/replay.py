@@ -517,7 +517,7 @@ def run_program(
     report = stage_reporter(progress, "replay")
     host = cfg.robot.host
     try:
-        robot: Any = open_retrying(lambda: make_devices(cfg).robot, attempts=3)
+        robot = open_retrying(lambda: make_devices(cfg).robot, attempts=3)
     except DriverError as exc:
         raise ReplayError(f"cannot connect to the robot: {exc}") from None
     text = plan.script()

@@ -4,21 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from support import sample_surface
 
 from wristscan.calib import icp, se3
-
-
-def surface(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """A smooth patch (m) with no symmetry: anisotropic paraboloid, cubic term, off-centre bump."""
-    bump = 0.005 * np.exp(-((x - 0.01) ** 2 + (y + 0.015) ** 2) / (2 * 0.01**2))
-    return 3.0 * x**2 + 1.0 * y**2 + 2.0 * x**3 + bump
-
-
-def sample(rng: np.random.Generator, x_range: tuple[float, float], step: float) -> np.ndarray:
-    gx, gy = np.meshgrid(np.arange(*x_range, step), np.arange(-0.04, 0.04, step))
-    x = gx.ravel() + rng.uniform(-step / 3, step / 3, gx.size)
-    y = gy.ravel() + rng.uniform(-step / 3, step / 3, gx.size)
-    return np.column_stack([x, y, surface(x, y)])
 
 
 def perturbation(translation_m: float, rotation_deg: float) -> np.ndarray:
@@ -34,15 +22,15 @@ def perturbation(translation_m: float, rotation_deg: float) -> np.ndarray:
 def pair() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(source in its own frame, target, true source2target): overlap x in [-0.03, 0.03]."""
     rng = np.random.default_rng(5)
-    target = sample(rng, (-0.03, 0.045), 0.0008)
+    target = sample_surface(rng, (-0.03, 0.045), 0.0008)
     truth = perturbation(0.3e-3, 0.2)
-    source = se3.apply(se3.invert(truth), sample(rng, (-0.045, 0.03), 0.0011))
+    source = se3.apply(se3.invert(truth), sample_surface(rng, (-0.045, 0.03), 0.0011))
     return source, target, truth
 
 
 def test_normals_of_known_surface() -> None:
     rng = np.random.default_rng(2)
-    pts = sample(rng, (-0.02, 0.02), 0.001)
+    pts = sample_surface(rng, (-0.02, 0.02), 0.001)
     n = icp.estimate_normals(pts, k=12, viewpoint=[0.0, 0.0, 1.0])
     x, y = pts[:, 0], pts[:, 1]
     # Analytic normal of z = f(x, y): (-fx, -fy, 1) normalised (bump included).

@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 from scipy.linalg import expm
+from support import REAL_UR10E
 
 from wristscan.calib import kinematics as kin
 from wristscan.calib import se3
@@ -25,20 +26,6 @@ TABLE = {
     "UR16e": (0.1807, -0.4784, -0.36, 0.17415, 0.11985, 0.11655),
     "UR20": (0.2363, -0.862, -0.7287, 0.201, 0.1593, 0.1543),
 }
-
-# KinematicsInfo of a real UR10e as printed in Universal_Robots_ROS2_Driver
-# ur_calibration/doc/algorithm.rst (complete calibrated DH values, not deltas).
-REAL_UR10E = kin.from_kinematics_info(
-    theta=[-2.4147806894359e-07, 1.60233952386695, -1.68607190752171, 0.0837331147700119,
-           -1.01260355871158e-07, 3.91986209186124e-08],
-    a=[2.12234865571206e-05, 0.0193171326277006, -0.569251663611088, -4.61409023720934e-05,
-       -6.39280053471802e-05, 0.0],
-    d=[0.180539811714259, 439.140974079901, -446.027059806332, 7.0603368964236,
-       0.119811341150314, 0.115670917257426],
-    alpha=[1.57014608044242, 0.0013941666682559, 0.00693818880325995, 1.56998468543761,
-           -1.57038520649543, 0.0],
-    name="real UR10e",
-)  # fmt: skip
 
 
 @pytest.fixture

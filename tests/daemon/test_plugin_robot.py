@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from support import depth_errors
 from typer.testing import CliRunner
 
 from wristscan.daemon.cli.app import app
@@ -135,15 +136,5 @@ def test_a_plugin_robot_runs_calibrate_latency_and_a_scan_pass(tmp_path: Path, p
     # with, gives the measured depths (sensor noise 20 um).
     scene = demo_scene(table_zero2base=np.array(truth["table_zero2base"]))
     s2f = np.array(truth["sensor2flange"])
-    errors = []
-    for k in range(0, sw.n_profiles, max(1, sw.n_profiles // 30)):
-        m = (sw.profile_index == k) & sw.valid
-        y = sw.y[m]
-        origins = np.column_stack([np.zeros_like(y), y, np.zeros_like(y)])
-        dirs = np.tile([0.0, 0.0, 1.0], (y.size, 1))
-        t, _ = scene.raycast_bundles(
-            (sw.flange2base[k] @ s2f)[None], origins, dirs, rec.table_angle_rad
-        )
-        errors.append(sw.z[m] - t[0])
-    e = np.concatenate(errors)
+    e = depth_errors(sw, scene, s2f, rec.table_angle_rad)
     assert np.median(np.abs(e[np.isfinite(e)])) < 60e-6

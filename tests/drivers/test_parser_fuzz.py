@@ -9,28 +9,13 @@ from typing import Any
 import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from support import same_profile
 
 from wristscan.drivers import lpf1, lpf1_reader, rf627, scip
 from wristscan.drivers.records import Profile
 
 SETTINGS = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 _rng = np.random.default_rng(7)
-
-
-def _same(a: Profile, b: Profile) -> bool:
-    def eq(x: Any, y: Any) -> bool:
-        if x is None or y is None:
-            return x is None and y is None
-        return bool(np.array_equal(x, y, equal_nan=x.dtype.kind == "f"))
-
-    return (
-        (a.sensor_id, a.frame_counter, a.sensor_time_ns, a.encoder)
-        == (b.sensor_id, b.frame_counter, b.sensor_time_ns, b.encoder)
-        and eq(a.y, b.y)
-        and eq(a.z, b.z)
-        and eq(a.valid, b.valid)
-        and eq(a.intensity, b.intensity)
-    )
 
 
 @st.composite
@@ -89,7 +74,7 @@ def test_lpf1_datagram_damage_is_always_rejected(case: tuple[bytes, bytes]) -> N
     except lpf1.FrameError:
         return
     expect = _lpf1_decode(frame)
-    assert _same(got, expect) if isinstance(got, Profile) else got == expect
+    assert same_profile(got, expect) if isinstance(got, Profile) else got == expect
 
 
 @SETTINGS

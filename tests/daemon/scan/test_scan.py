@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from support import depth_errors
 from typer.testing import CliRunner
 
 from wristscan.calib import kinematics, se3
@@ -595,18 +596,7 @@ def test_recorded_profiles_match_the_scene_from_their_paired_poses(
     scene = demo_scene(table_zero2base=np.array(cell_scan["truth"]["table_zero2base"]))
     s2f = np.array(cell_scan["truth"]["sensor2flange"])
     for rec in res.recorded:
-        sw = rec.sweep
-        errors = []
-        for k in range(0, sw.n_profiles, max(1, sw.n_profiles // 30)):
-            m = (sw.profile_index == k) & sw.valid
-            y = sw.y[m]
-            origins = np.column_stack([np.zeros_like(y), y, np.zeros_like(y)])
-            dirs = np.tile([0.0, 0.0, 1.0], (y.size, 1))
-            t, _ = scene.raycast_bundles(
-                (sw.flange2base[k] @ s2f)[None], origins, dirs, rec.table_angle_rad
-            )
-            errors.append(sw.z[m] - t[0])
-        e = np.concatenate(errors)
+        e = depth_errors(rec.sweep, scene, s2f, rec.table_angle_rad)
         median = float(np.median(np.abs(e[np.isfinite(e)])))
         assert median < 40e-6, f"{rec.label}: median |z - z_true| {median * 1e6:.0f} um"
 
