@@ -59,11 +59,8 @@ def _ik_round_trip(model: kin.DHParams, q_all: np.ndarray) -> tuple[float, float
     return worst_pos, worst_rot, misses, (time.perf_counter() - t0) / len(q_all)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--json-out", help="also write the figures to this JSON file")
-    args = parser.parse_args(argv)
-
+def run() -> list[Figure]:
+    """The figures (``calib_accuracy.py`` runs every calib topic through its ``run()``)."""
     rng = np.random.default_rng(2009)
     model = kin.UR_MODELS["UR5e"]
     q = rng.uniform(-2 * np.pi, 2 * np.pi, size=(N_FORWARD, 6))
@@ -126,7 +123,14 @@ def main(argv: list[str] | None = None) -> int:
         Figure("IK calibrated: original q missing", c_misses, "poses", "0", c_misses == 0),
         Figure("IK calibrated: time per call", statistics.mean(t_cal) * 1e3, "ms", "-", None),
     ]  # fmt: skip
-    return report("calib.kinematics", figures, json_out=args.json_out)
+    return figures
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--json-out", help="also write the figures to this JSON file")
+    args = parser.parse_args(argv)
+    return report("calib.kinematics", run(), json_out=args.json_out)
 
 
 if __name__ == "__main__":

@@ -4,8 +4,10 @@ The machine is shared and its speed drifts, so a change to a hot path is judged 
 and B alternated in one session (A B A B ...), compared by their medians. A is a ``git
 worktree`` of the commit whose ``calib``/``drivers``/``daemon`` are put first on
 ``PYTHONPATH`` (as ``wristscan.*``); both run the working tree's ``benchmarks/pipeline.py``, so
-only the package differs (daemon, drivers and the simulator). Prints each run and the medians;
-exits 1 when B's median p99 latency is worse than A's by more than ``--tolerance``.
+only the package differs (daemon, drivers and the simulator). With ``--own-script``, A runs the
+commit's own ``benchmarks/pipeline.py`` (for a commit from before modules moved, whose package the
+working tree's script cannot import). Prints each run and the medians; exits 1 when B's median
+p99 latency is worse than A's by more than ``--tolerance``.
 
     .venv/bin/python benchmarks/pipeline_ab.py fdd6f34 --pairs 3 --duration 15
 """
@@ -49,10 +51,12 @@ def _package_view(commit: str, work: Path) -> Path:
     return view.parent
 
 
-def _one_run(env: dict[str, str], out: Path, rate: str, duration: str) -> dict[str, Any]:
+def _one_run(
+    env: dict[str, str], out: Path, rate: str, duration: str, root: Path = ROOT
+) -> dict[str, Any]:
     cmd = [
         sys.executable,
-        str(ROOT / "benchmarks" / "pipeline.py"),
+        str(root / "benchmarks" / "pipeline.py"),
         "--rates",
         rate,
         "--duration",
@@ -62,7 +66,7 @@ def _one_run(env: dict[str, str], out: Path, rate: str, duration: str) -> dict[s
         "--json",
         str(out),
     ]
-    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=ROOT)
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=root)
     details = out.with_suffix(".details.json")
     if not details.exists():
         raise RuntimeError(f"benchmark run failed:\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
@@ -83,6 +87,11 @@ def main() -> int:
     ap.add_argument(
         "--tolerance", type=float, default=1.25, help="B's p99 may be this many times A's"
     )
+    ap.add_argument(
+        "--own-script",
+        action="store_true",
+        help="A runs the commit's own benchmarks/pipeline.py (a commit from before a move)",
+    )
     ns = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="wristscan-ab-") as tmp:
         work = Path(tmp)
@@ -97,9 +106,11 @@ def main() -> int:
                 for side in ("A", "B"):
                     env = dict(os.environ)
                     env.pop("PYTHONPATH", None)
+                    root = ROOT
                     if side == "A":
                         env["PYTHONPATH"] = str(view)
-                    row = _one_run(env, work / f"{side}{i}.json", ns.rate, ns.duration)
+                        root = work / "tree" if ns.own_script else ROOT
+                    row = _one_run(env, work / f"{side}{i}.json", ns.rate, ns.duration, root)
                     rows[side].append(row)
                     shown = {k: round(v, 2) if isinstance(v, float) else v for k, v in row.items()}
                     print(f"{side} run {i + 1}: {shown}", flush=True)
