@@ -93,7 +93,7 @@ def bench_plane(folder: Path) -> list[Figure]:
             cfg,
             PlaneOptions(spacing_m=0.03, n_spots=4),
             confirmed=True,
-            progress=lambda d, t, s: _log(f"plane: {s}"),
+            progress=lambda e: _log(f"plane: {e.message}"),
         )
     s0 = res.spots[0].sensor2base
     origin_true = truth.intersect_line(s0[:3, 3], s0[:3, 2])
@@ -129,7 +129,7 @@ def bench_edge_and_replay(folder: Path, length_mm: float) -> tuple[list[Figure],
             model,
             EdgeOptions(length_m=length_mm * 1e-3, resolution_m=0.001),
             confirmed=True,
-            progress=lambda d, t, s: _log(f"edge: {s}") if d % 10 == 0 else None,
+            progress=lambda e: _log(f"edge: {e.message}") if e.step % 10 == 0 else None,
         )
         t_learn = time.monotonic() - t0
         path_file = write_edge_path(folder / "path.json", res, cfg)
