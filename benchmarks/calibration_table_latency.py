@@ -60,6 +60,7 @@ from wristscan.daemon.io.calibfile import (
     SensorIdentity,
     write_calibration,
 )
+from wristscan.daemon.procedure.progress import ProgressEvent
 from wristscan.daemon.simcell.cell import dump_toml, free_sim_config
 from wristscan.daemon.simcell.scenarios import (
     pairing_truth_tap,
@@ -128,8 +129,8 @@ def _spec(cfg: Config, start_above: str, seed: int) -> CellSpec:
 
 
 def _progress(tag: str) -> Any:
-    def show(done: int, total: int, text: str) -> None:
-        print(f"  {tag} [{done}/{total}] {text}", file=sys.stderr, flush=True)
+    def show(event: ProgressEvent) -> None:
+        print(f"  {tag} {event}", file=sys.stderr, flush=True)
 
     return show
 

@@ -235,7 +235,7 @@ def run(speed_m_s: float = 0.02, keep: Path | None = None) -> int:
             plan,
             confirmed=True,
             out_dir=folder / "out",
-            progress=lambda d, n, s: print(f"[{d}/{n} {time.monotonic() - t0:5.1f} s] {s}"),
+            progress=lambda e: print(f"[{time.monotonic() - t0:5.1f} s] {e}"),
         )
     finally:
         cell.stop()
