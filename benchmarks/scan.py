@@ -15,10 +15,12 @@ Run: ``.venv/bin/python benchmarks/scan.py [--speed-mm-s 20] [--keep DIR]``
    * the largest ICP correction with the true calibration;
    * the same recorded passes aligned with a sensor calibration off by 0.3 mm (along the
      sensor's X, Y and Z in turn): whether the report flags it;
-   * coverage: the part's surface visible from the plan's views (dense ray casting of the true
-     scene from each view direction over the whole box) against the merged cloud; the largest
-     distance from a visible surface sample to the nearest scanned point (a gap between strips
-     would show here), and the smallest strip overlap of the plan.
+   * coverage, measured in the recorded clouds: the part's surface visible from the plan's
+     views (dense ray casting of the true scene from each view direction over the whole box)
+     against the merged cloud; the largest distance from a visible surface sample to the nearest
+     scanned point (a gap between strips would show here); the overlap of neighbouring strips
+     (the share of the smaller cloud, thinned to 0.5 mm voxels, within 0.5 mm of the other),
+     with the planner's own figure beside it as information.
 
 Exits non-zero when a target is missed.
 """
@@ -72,6 +74,8 @@ DEPTH_RANGE_M = (0.05, 0.15)
 TABLE_DEG = (0.0, 90.0)
 TILTS_DEG = (15.0, -15.0)
 OFF_M = 0.3e-3
+OVERLAP_VOXEL_M = 0.5e-3
+"""Grid on which the overlap of neighbouring strips is measured in their clouds."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -164,6 +168,41 @@ def visible_samples(
         pts.append(p[inside])
         dirs.append(np.broadcast_to(R[:, 2], p[inside].shape))
     return np.concatenate(pts), np.concatenate(dirs)
+
+
+# --------------------------------------------------------------------------------------------
+# Overlap of neighbouring strips, measured in the recorded clouds
+
+
+def _view_key(p: Any) -> tuple[Any, ...]:
+    o = getattr(p, "orientation", None)
+    return (p.kind, p.table_deg, None if o is None else (o.yaw_deg, o.pitch_deg, o.tilt_deg))
+
+
+def measured_overlaps(
+    recorded: Any, clouds: list[Any], plan: ScanPlan, voxel_m: float = OVERLAP_VOXEL_M
+) -> list[tuple[str, str, float]]:
+    """For each pair of neighbouring strips (consecutive passes of the plan with the same table
+    angle and view; numbered from 1 as the plan lists them), the share of the surface both
+    recorded clouds cover: the clouds are thinned to one point per ``voxel_m`` voxel, and the
+    share is that of the smaller cloud's points with a point of the other within ``voxel_m``.
+    Where the surface is flat this is the planner's shared width over the line width;
+    occlusions, steep faces, the crop and lost profiles count as they fall."""
+    thin = [voxel_mean(np.asarray(c.xyz, dtype=np.float64), voxel_m)[0] for c in clouds]
+    out = []
+    for i in range(len(recorded) - 1):
+        a, b = recorded[i], recorded[i + 1]
+        if b.index != a.index + 1:
+            continue  # a pass that was not recorded between them
+        if _view_key(plan.passes[a.index]) != _view_key(plan.passes[b.index]):
+            continue
+        small, big = sorted((thin[i], thin[i + 1]), key=len)
+        if len(small) == 0:
+            out.append((f"{a.index + 1}", f"{b.index + 1}", 0.0))
+            continue
+        d, _ = cKDTree(big).query(small, distance_upper_bound=2 * voxel_m)
+        out.append((f"{a.index + 1}", f"{b.index + 1}", float(np.mean(d <= voxel_m))))
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -326,11 +365,18 @@ def evaluate(
             f"{len(mo.corrections)} passes flagged, largest correction {biggest * 1e3:.3f} mm"
         )
 
-    # Coverage of the visible surface.
+    # Coverage of the visible surface and the strips' overlap, in the recorded clouds.
     # (as recorded: removing the faulty profiles leaves holes by construction)
     vis, _ = visible_samples(scene, plan)
     dist, _ = cKDTree(as_recorded.after).query(vis, k=1)
     covered = float(np.mean(dist <= 0.5e-3))
+    overlaps = measured_overlaps(recorded, align_passes(recorded, cal, plan.frame, plan), plan)
+    print(
+        "strip overlap measured in the clouds (neighbouring passes: share of the smaller cloud "
+        f"within {OVERLAP_VOXEL_M * 1e3:g} mm of the other): "
+        + ", ".join(f"passes {a}|{b} {o * 100:.0f} %" for a, b, o in overlaps)
+    )
+    min_overlap = min((o for _, _, o in overlaps), default=0.0)
     g = plan.generator or {}
     n_angles = len({p.table_deg for p in plan.passes})
     print(
@@ -404,11 +450,18 @@ def evaluate(
         )
     figures += [
         Figure(
-            "plan strip overlap (smallest)",
-            g.get("min_overlap", 0.0) * 100,
+            f"strip overlap measured in the clouds (smallest of {len(overlaps)} pairs)",
+            min_overlap * 100,
             "%",
             f">= {OVERLAP * 100:g}",
-            g.get("min_overlap", 0.0) >= OVERLAP,
+            bool(overlaps) and min_overlap >= OVERLAP,
+        ),
+        Figure(
+            "strip overlap the planner computed (smallest)",
+            g.get("min_overlap", 0.0) * 100,
+            "%",
+            "-",
+            None,
         ),
         Figure(
             "visible surface within 0.5 mm of the cloud",

@@ -3,6 +3,7 @@ truth, in one place (benchmarks put this folder on ``sys.path``; pytest does for
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -83,3 +84,206 @@ def depth_errors(
         )
         errors.append(sweep.z[m] - t[0])
     return np.concatenate(errors)
+
+
+# ---------------------------------------------------------------------------------------------
+# Loopback addresses and ports a test run owns (issue 16: two runs on one machine never collide)
+
+
+def own_loopback_host() -> str:
+    """A random loopback address ``127.a.b.c`` of this run's own (see
+    :func:`~wristscan.drivers.sim.ur.controller.pick_free_loopback_host`): ports chosen on it by
+    binding port 0 and releasing it stay free for this run, since no other run binds there."""
+    from wristscan.drivers.sim.ur.controller import pick_free_loopback_host
+
+    return pick_free_loopback_host()
+
+
+def free_tcp_port(host: str) -> int:
+    """A TCP port free now on ``host``; take ``host`` from :func:`own_loopback_host` (on a shared
+    address such as 127.0.0.1 another process could take the port before the test binds it)."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+class RefusingPort:
+    """A TCP port on ``host`` that refuses connections while held: bound, never listening (the
+    kernel answers a connect with a reset). Held rather than released, so no other process can
+    start listening there meanwhile. A context manager; ``port`` is the port."""
+
+    def __init__(self, host: str = "127.0.0.1") -> None:
+        import socket
+
+        self._sock = socket.socket()
+        self._sock.bind((host, 0))
+        self.host = host
+        self.port = int(self._sock.getsockname()[1])
+
+    def __enter__(self) -> RefusingPort:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._sock.close()
+
+
+def tcp_peers_of_this_process() -> list[tuple[str, int]]:
+    """The remote (address, port) of every connected IPv4 TCP socket this process holds (Linux:
+    its file descriptors matched with ``/proc/self/net/tcp``). Shows which process a link runs
+    in, whatever the load: a driver that keeps its links in child processes holds none."""
+    import os
+    import socket
+    import struct
+
+    inodes = set()
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            link = os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:  # closed meanwhile
+            continue
+        if link.startswith("socket:["):
+            inodes.add(link[8:-1])
+    peers = []
+    with open("/proc/self/net/tcp", encoding="ascii") as f:
+        next(f)  # header
+        for line in f:
+            fields = line.split()
+            ip_hex, port_hex = fields[2].split(":")
+            if fields[9] in inodes and int(port_hex, 16) != 0:
+                ip = socket.inet_ntoa(struct.pack("<I", int(ip_hex, 16)))
+                peers.append((ip, int(port_hex, 16)))
+    return peers
+
+
+TRUE_POSES_ONLY: dict[str, float] = {"truth_wait_s": 1.5, "max_lag_s": 1.0}
+"""Simulated-sensor settings (``start_cell(cfg, **TRUE_POSES_ONLY)``, or a scenario's sensor
+overrides) for a test that compares what the cell measured with the simulator's truth. By default
+the simulated sensor waits 50 ms for the controller's true pose of an exposure and then ray-casts
+from the newest pose it has: on a loaded machine, where the controller process runs late, whole
+stretches of a pass are then measured from stale poses (passes 10-75 um off the true part, ICP
+corrections up to 70 um, with nothing wrong in wristscan). Waiting longer than the sensor may lag
+(beyond which it skips exposures, as a real sensor with a full buffer does) makes every profile
+the sensor sends true to its exposure; it only sends later."""
+
+
+# --------------------------------------------------------------------------------------------
+# A cloud against the simulator's true surface: signed distances and a rigid registration
+
+
+def _box_sd(q: NDArray[np.float64], half: NDArray[np.float64]) -> NDArray[np.float64]:
+    d = np.abs(q) - half
+    return np.asarray(np.linalg.norm(np.maximum(d, 0.0), axis=1) + np.minimum(d.max(axis=1), 0.0))
+
+
+def primitive_signed_distance(prim: Any, p: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Signed distance (m, positive outside) of points ``p`` (N, 3, in the primitive's mount
+    frame) from the surface of a simulated ``Box``, ``Cylinder`` (capped, from local z = 0 up to
+    its height), ``Sphere`` or convex ``TriangleMesh`` (the largest face-plane distance: exact
+    inside and off the edges, which is what a measured point near a face needs)."""
+    from wristscan.drivers.sim.mesh import TriangleMesh
+    from wristscan.drivers.sim.scene import Box, Cylinder, Sphere
+
+    q = p @ prim.mount2local[:3, :3].T + prim.mount2local[:3, 3]
+    if isinstance(prim, Box):
+        return _box_sd(q, np.asarray(prim.half))
+    if isinstance(prim, Cylinder):
+        r = np.hypot(q[:, 0], q[:, 1]) - prim.radius
+        h = np.abs(q[:, 2] - 0.5 * prim.height) - 0.5 * prim.height
+        d = np.stack([r, h], axis=1)
+        return np.asarray(
+            np.linalg.norm(np.maximum(d, 0.0), axis=1) + np.minimum(d.max(axis=1), 0.0)
+        )
+    if isinstance(prim, Sphere):
+        return np.asarray(np.linalg.norm(q, axis=1) - prim.radius)
+    if isinstance(prim, TriangleMesh):
+        v, f = prim.vertices, prim.faces
+        a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+        n = np.cross(b - a, c - a)
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        n *= np.sign(np.einsum("ij,ij->i", n, a - v.mean(axis=0)))[:, None]  # outwards
+        return np.asarray(np.einsum("pfj,fj->pf", q[:, None, :] - a[None], n).max(axis=1))
+    raise TypeError(f"no signed distance for {type(prim).__name__}")
+
+
+def part_signed_distance(scene: Any, p: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Signed distance (m) of part-frame points (the scene's table frame) from the union of the
+    table-mounted primitives of the simulator's ``scene`` (the platter and the part)."""
+    prims = [x for x in scene.primitives if x.mount == "table"]
+    return np.asarray(np.min([primitive_signed_distance(x, p) for x in prims], axis=0))
+
+
+def registration_to_truth(
+    points: NDArray[np.float64],
+    signed_distance: Any,
+    *,
+    rotation: bool = False,
+    trim_m: float = 0.3e-3,
+    max_points: int = 20_000,
+    iterations: int = 4,
+) -> dict[str, Any]:
+    """How far ``points`` (N, 3) lie from the true surface whose signed distance function
+    ``signed_distance(p) -> (N,)`` is given: the rigid motion that brings them onto it, by
+    Gauss-Newton on the point-to-surface distances (the surface normals by central differences),
+    about the cloud's centroid; a translation only unless ``rotation``. A registration against
+    the truth, not between clouds. Points farther than ``trim_m`` from the surface, and then
+    farther than 4 robust sigmas from it, are left out (a stray profile does not steer it); at
+    most ``max_points`` of them are used (a fixed random subset).
+
+    Returns ``shift_m`` (3,): how far the cloud lies from the truth at its centroid (its points
+    minus where they belong); ``rotation_rad`` (3,) (its rotation vector about the centroid,
+    zero without ``rotation``); ``rms_before_m`` and ``rms_after_m`` (RMS distance of the points
+    used); ``n`` (points used); ``centre``."""
+    p = np.asarray(points, dtype=np.float64)
+    if p.shape[0] > max_points:
+        p = p[np.random.default_rng(0).choice(p.shape[0], max_points, replace=False)]
+    centre = p.mean(axis=0)
+    p = p[np.abs(signed_distance(p)) < trim_m]
+    if p.shape[0] < 100:
+        raise ValueError(f"registration_to_truth: {p.shape[0]} points near the true surface")
+    R, t = np.eye(3), np.zeros(3)
+    keep = np.ones(p.shape[0], dtype=bool)
+    rms_before = math.nan
+    for it in range(iterations):
+        q = (p - centre) @ R.T + centre + t
+        d = signed_distance(q)
+        sigma = 1.4826 * float(np.median(np.abs(d - np.median(d))))
+        keep = np.abs(d - np.median(d)) < 4 * sigma
+        if it == 0:
+            rms_before = float(np.sqrt(np.mean(d[keep] ** 2)))
+        q, d = q[keep], d[keep]
+        g = np.stack(
+            [(signed_distance(q + e) - signed_distance(q - e)) / 2e-6 for e in np.eye(3) * 1e-6],
+            axis=1,
+        )
+        # The step: q -> q + w x (q - centre) + dt.
+        J = np.concatenate([np.cross(q - centre, g), g], axis=1) if rotation else g
+        step = np.linalg.lstsq(J, -d, rcond=1e-9)[0]
+        w = step[:3] if rotation else np.zeros(3)
+        dR = _rotvec_matrix(w)
+        R, t = dR @ R, dR @ t + step[-3:]
+    q = ((p - centre) @ R.T + centre + t)[keep]
+    # The correction maps the cloud onto the truth; the cloud's error is its inverse.
+    return {
+        "shift_m": -(R.T @ t),
+        "rotation_rad": -_matrix_rotvec(R),
+        "rms_before_m": rms_before,
+        "rms_after_m": float(np.sqrt(np.mean(signed_distance(q) ** 2))),
+        "n": int(keep.sum()),
+        "centre": centre,
+    }
+
+
+def _rotvec_matrix(w: NDArray[np.float64]) -> NDArray[np.float64]:
+    angle = float(np.linalg.norm(w))
+    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if angle < 1e-12:
+        return np.eye(3) + K
+    return np.eye(3) + np.sin(angle) / angle * K + (1 - np.cos(angle)) / angle**2 * K @ K
+
+
+def _matrix_rotvec(R: NDArray[np.float64]) -> NDArray[np.float64]:
+    angle = float(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)))
+    axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return np.zeros(3) if angle < 1e-12 else axis / (2 * np.sin(angle)) * angle

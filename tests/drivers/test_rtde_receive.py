@@ -1,10 +1,14 @@
 """The native RTDE receive client (drivers/rtde_receive.py) against the simulated UR controller,
 and URRobot's native receive backend.
 
-Every test starts its own simulated controller process on a random free 127.0.0.x address and
+Every test starts its own simulated controller process on a random free 127.a.b.c address and
 stops it before it ends. Ground truth: the controller's timestamps are exact multiples of its
 period (2 ms e-Series, 8 ms CB3), and ``SimulatedController.state()`` (``skipped_cycles``: cycles
 the controller itself never sent because it ran late, which no client can receive).
+
+No assert depends on how fast a loaded machine runs: reads go on until the samples span a
+controller time (not for a wall time, then counted), waits are for events with generous
+timeouts, and host times are compared only where causality orders them.
 """
 
 from __future__ import annotations
@@ -42,7 +46,7 @@ from wristscan.drivers.ur.receive import (
 )
 from wristscan.drivers.ur.robot import URRobot
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = pytest.mark.timeout(120)
 
 WORK_Q = (0.3, -1.9, 1.9, -1.57, -1.57, 0.2)
 VARS = ("timestamp", "actual_q", "actual_qd", "actual_TCP_pose", "runtime_state")
@@ -55,14 +59,34 @@ def controller(host: str | None = None, **overrides: Any) -> Iterator[SimulatedC
         yield sim
 
 
+def _joined(got: list[Samples]) -> Samples:
+    return Samples(
+        np.concatenate([g.host_ns for g in got]), np.concatenate([g.values for g in got])
+    )
+
+
 def read_for(client: RtdeReceiver, seconds: float) -> Samples:
     got: list[Samples] = []
     end = time.monotonic() + seconds
     while time.monotonic() < end:
         got.append(client.read(timeout=0.1))
-    return Samples(
-        np.concatenate([g.host_ns for g in got]), np.concatenate([g.values for g in got])
-    )
+    return _joined(got)
+
+
+def read_span(client: RtdeReceiver, span_s: float, timeout_s: float = 30.0) -> Samples:
+    """Read until the controller timestamps received span ``span_s`` (a controller that runs late
+    skips cycles, the clock goes on: the span is reached whatever the load)."""
+    got: list[Samples] = []
+    first: float | None = None
+    deadline = time.monotonic() + timeout_s
+    while True:
+        g = client.read(timeout=0.1)
+        got.append(g)
+        if len(g):
+            first = float(g["timestamp"][0]) if first is None else first
+            if g["timestamp"][-1] - first >= span_s:
+                return _joined(got)
+        assert time.monotonic() < deadline, f"the samples did not span {span_s} s in time"
 
 
 def assert_every_sample(t: np.ndarray, period_s: float, skipped: int) -> None:
@@ -127,12 +151,13 @@ def test_handshake_and_every_sample_in_order() -> None:
             assert fast.controller_version == (5, 15, 0, 0)
             assert fast.frequency_hz == 500.0 and slow.frequency_hz == 125.0
             assert fast.recipe is not None and fast.recipe.types[1] == "VECTOR6D"
-            got = read_for(fast, 2.0)
-            got_slow = slow.read(timeout=1.0)
+            got = read_span(fast, 2.0)
+            got_slow = slow.read(timeout=10.0)
             truth = sim.state()
         assert not fast.is_open
         t = got["timestamp"]
-        assert len(got) > 800
+        # 2 s of controller time: 1001 samples, less the cycles the controller itself skipped.
+        assert len(got) + truth["skipped_cycles"] >= 1001
         assert_every_sample(t, 0.002, truth["skipped_cycles"])
         assert len(got_slow) > 0
         assert_every_sample(got_slow["timestamp"], 0.008, truth["skipped_cycles"])
@@ -144,23 +169,27 @@ def test_handshake_and_every_sample_in_order() -> None:
         assert got["actual_q"].shape == (len(got), 6)
         assert np.allclose(got["actual_q"], truth["q"], atol=1e-12)
         assert np.all(got["joint_mode"] == 253)
-        # Host stamps: in order, after the controller produced each sample, soon after.
+        # Host stamps: in order, after the controller produced each sample (causality, whatever
+        # the load), and on the host's monotonic clock: a stamp on another clock or taken long
+        # after receipt would be seconds off (a bound generous enough for any load).
         assert np.all(np.diff(got.host_ns) >= 0)
         lag_ms = (got.host_ns - np.array([sim.host_time_ns(x) for x in t])) * 1e-6
-        assert lag_ms.min() > 0.0 and np.median(lag_ms) < 50.0
+        assert lag_ms.min() > 0.0 and np.median(lag_ms) < 1000.0
         assert fast.counters["packets"] == len(got)
 
 
 def test_starved_reader_loses_nothing() -> None:
     with controller() as sim, RtdeReceiver(sim.host, VARS) as client:
-        first = client.read(timeout=1.0)
+        first = client.read(timeout=10.0)
         time.sleep(0.6)  # not reading: the kernel holds the packets
         t_wake = time.monotonic_ns()
         burst = client.read(timeout=0)
         rest = read_for(client, 0.2)
         skipped = sim.state()["skipped_cycles"]
     t = np.concatenate([first["timestamp"], burst["timestamp"], rest["timestamp"]])
-    assert len(burst) >= 250  # ~300 samples of the 0.6 s came out at once
+    # The 0.6 s not read came out at once: the burst spans most of it on the controller's clock
+    # (a span, not a count: a controller running late skips cycles, its clock goes on).
+    assert np.ptp(burst["timestamp"]) >= 0.3
     assert np.all(burst.host_ns >= t_wake)  # stamped when taken in, not invented earlier
     assert_every_sample(t, 0.002, skipped)
 
@@ -196,12 +225,19 @@ def test_link_loss_is_reported_and_reopen_continues() -> None:
             client.open()  # the same receiver connects again
             after = read_for(client, 0.2)
             assert after["timestamp"][0] > before["timestamp"][-1]
-            # The controller goes silent: no data for data_timeout_s counts as a lost link.
-            sim.stall_output(1.5)
-            t0 = time.monotonic()
+            # The controller goes silent: no data for data_timeout_s counts as a lost link. The
+            # stall outlasts any wait (the controller keeps the connection open): raising at all
+            # is the timeout firing; and not before data_timeout_s after the last data taken in
+            # (a bound that causality orders, whatever the load; a fixed window after the
+            # request would not be).
+            last_ns = int(after.host_ns[-1])
+            sim.stall_output(30.0)
+            deadline = time.monotonic() + 25.0
             with pytest.raises(RtdeLinkLost, match="no data for"):
-                read_for(client, 3.0)
-            assert 0.3 < time.monotonic() - t0 < 1.2
+                while time.monotonic() < deadline:
+                    g = client.read(timeout=0.1)
+                    last_ns = int(g.host_ns[-1]) if len(g) else last_ns
+            assert time.monotonic_ns() - last_ns >= 0.4e9
         finally:
             client.close()
 
@@ -220,10 +256,10 @@ def test_refusals_are_clear() -> None:
             RtdeReceiver(sim.host, VARS, frequency_hz=500.0).open()
         with RtdeReceiver(sim.host, VARS) as client:  # the default adapts to CB3
             assert client.frequency_hz == 125.0
-            assert len(client.read(timeout=1.0)) > 0
+            assert len(client.read(timeout=10.0)) > 0
         # Every connection, failed handshakes included, was closed (the controller notices
         # each end of stream a moment later).
-        deadline = time.monotonic() + 3.0
+        deadline = time.monotonic() + 30.0
         while sim.state()["rtde_clients"] and time.monotonic() < deadline:
             time.sleep(0.02)
         assert sim.state()["rtde_clients"] == 0
@@ -284,7 +320,7 @@ def test_framing_split_packets_and_stray_packets() -> None:
         try:
             with RtdeReceiver(host, ["timestamp", "actual_q"], port=port) as client:
                 assert client.frequency_hz == 500.0
-                got = read_for(client, 0.5)
+                got = read_span(client, 38.5 * 0.002)  # all 40 packages, however late they come
         finally:
             th.join(timeout=10.0)
     assert np.allclose(got["timestamp"], np.arange(40) * 0.002)
@@ -299,14 +335,22 @@ def test_framing_split_packets_and_stray_packets() -> None:
 def test_robot_native_loses_nothing_under_cpu_hog() -> None:
     with controller() as sim, URRobot(sim.host, receive_backend="native") as r:
         r.read_for(0.2)
-        lost0, skipped0 = r.counters.lost, sim.state()["skipped_cycles"]
+        # The driver's lost count from a point of the stream no earlier than the controller's
+        # skipped count: a cycle the controller skips between the two snapshots would otherwise
+        # count as lost but not as skipped (seen when the machine was loaded).
+        snap = sim.state()
+        skipped0 = snap["skipped_cycles"]
+        deadline = time.monotonic() + 30.0
+        while (s := r.read(timeout=0.1)) is None or s.controller_time_s < snap["timestamp"]:
+            assert time.monotonic() < deadline, "the stream did not reach the snapshot"
+        lost0 = r.counters.lost
         hogs = [
             subprocess.Popen([sys.executable, "-c", "while True: pass"])
             for _ in range(os.cpu_count() or 2)
         ]
         try:
             sim.send_text_message("mid-stream notice", "test", 3)
-            states = r.read_for(2.0)
+            states = r.read_for(2.0)  # while the hogs run: what is read is counted below
         finally:
             for hog in hogs:
                 hog.kill()
@@ -316,7 +360,9 @@ def test_robot_native_loses_nothing_under_cpu_hog() -> None:
         h = r.health()
         skipped = sim.state()["skipped_cycles"] - skipped0
     t = np.array([s.controller_time_s for s in states])
-    assert len(states) > 900
+    # Over a second of controller time under the hogs (a span: how many samples the 2 s of
+    # reading held depends on the load; that none was lost is asserted next).
+    assert t[-1] - t[0] > 1.0
     assert r.counters.lost - lost0 <= skipped  # 0 unless the controller itself ran late
     assert_every_sample(t, 0.002, skipped)
     assert h.state is LinkState.OPEN and h.counters.duplicates == 0
@@ -336,11 +382,11 @@ def test_robot_native_survives_controller_restart() -> None:
             assert before and r.counters.reconnects == 0
         t_down = time.monotonic()
         while r.health().state is not LinkState.RECONNECTING:
-            assert time.monotonic() - t_down < 5.0, "the loss was not noticed"
+            assert time.monotonic() - t_down < 30.0, "the loss was not noticed"
             r.read(timeout=0.05)
         with controller(host) as sim2:
             after: list[RobotState] = []
-            end = time.monotonic() + 5.0
+            end = time.monotonic() + 30.0
             while time.monotonic() < end and len(after) < 200:
                 s = r.read(timeout=0.1)
                 if s is not None and s.host_time_ns > sim2.start_time_ns:
@@ -358,10 +404,11 @@ def test_robot_native_survives_controller_restart() -> None:
 def test_robot_native_unknown_variable_fails_clearly() -> None:
     with controller() as sim:
         r = URRobot(sim.host, receive_backend="native", variables=["no_such_output"])
-        t0 = time.monotonic()
         with pytest.raises(DriverInitError, match=r"no output variable.*no_such_output"):
             r.open()
-        assert time.monotonic() - t0 < 5.0  # failed at once, no retrying
-        assert r.health().state is LinkState.FAILED
+        # Failed for good at the first answer: no retry, no restarted child (counted, not timed).
+        h = r.health()
+        assert h.state is LinkState.FAILED
+        assert h.counters.reconnects == 0 and h.detail["receive_restarts"] == 0
     with pytest.raises(DriverInitError, match="receive_backend"):
         URRobot("127.0.0.1", receive_backend="rtde")

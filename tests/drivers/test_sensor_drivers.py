@@ -4,6 +4,9 @@ The simulated sensors run standalone (no robot ring): the sensor looks down at t
 from 0.1 m, noise-free, so every profile must equal the ray-cast truth computed here to within
 the wire format's quantisation. Faults injected by the simulator must show in the driver's
 counters and never as a wrong profile.
+
+No assert depends on how fast a loaded machine runs: waits are for events (a profile, a state,
+a counter) with generous timeouts, and times are compared only where causality orders them.
 """
 
 from __future__ import annotations
@@ -12,6 +15,7 @@ import contextlib
 import inspect
 import logging
 import socket
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -20,6 +24,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from support import RefusingPort
 
 from wristscan.drivers import lpf1, registry, rf627
 from wristscan.drivers.base import DriverInitError, DriverIOError, LinkState
@@ -201,7 +206,7 @@ def running(
         yield drv, sim, cfg
 
 
-def _read(drv: Driver, n: int, timeout_s: float = 10.0) -> list[Profile]:
+def _read(drv: Driver, n: int, timeout_s: float = 60.0) -> list[Profile]:
     out: list[Profile] = []
     deadline = time.monotonic() + timeout_s
     while len(out) < n and time.monotonic() < deadline:
@@ -235,9 +240,12 @@ class TestProfileSensorConformance:
             drv = backend.make({})
             with drv:
                 assert drv.open() is drv and drv.is_open
+                # A quiet read waits its timeout, then returns None: not sooner (a lower bound,
+                # which load cannot break); returning at all is the upper one (blocking for
+                # good would end in the test's timeout), so no stopwatch bound on top.
                 t0 = time.monotonic()
                 assert drv.read(timeout=0.15) is None
-                assert 0.14 <= time.monotonic() - t0 < 1.0
+                assert time.monotonic() - t0 >= 0.14
                 h = drv.health()
                 assert h.state is LinkState.OPEN and h.detail["stale"] is True
                 assert h.detail["rcvbuf_bytes"] >= 65536
@@ -246,14 +254,17 @@ class TestProfileSensorConformance:
             with pytest.raises(DriverIOError):
                 drv.read(timeout=0.01)
             return
-        # Nothing listening: a stream driver refuses to open with a clear error.
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            port = s.getsockname()[1]
-        ep = {"host": "127.0.0.1", "port": port, "port_path": "/dev/wristscan-no-such-port"}
-        drv = backend.make(ep)
-        with pytest.raises(DriverInitError):
-            drv.open()
+        # Nothing listening: a stream driver refuses to open with a clear error. The port is
+        # held (bound, not listening) so that no other process can listen there meanwhile.
+        with RefusingPort() as refusing:
+            ep = {
+                "host": refusing.host,
+                "port": refusing.port,
+                "port_path": "/dev/wristscan-no-such-port",
+            }
+            drv = backend.make(ep)
+            with pytest.raises(DriverInitError):
+                drv.open()
         assert drv.health().state is LinkState.FAILED and not drv.is_open
         drv.close()  # closing a device that never opened is harmless
 
@@ -301,15 +312,25 @@ class TestProfileSensorConformance:
         assert h0.counters.received == 30
 
         sim.set_faults(drop=0.08, duplicate=0.08, reorder=0.05, truncate=0.05, corrupt=0.05)
-        faulty = _read(drv, 150 if not backend.scip else 120)
+        # Read until every kind of fault has shown (at least 150 profiles, 120 for SCIP): on a
+        # loaded machine the reader can be far behind, and what it reads first is the backlog
+        # sent before the faults were switched on.
+        faulty: list[Profile] = []
+        deadline = time.monotonic() + 60.0
+        while True:
+            faulty += _read(drv, 30)
+            c = drv.health().counters
+            enough = len(faulty) >= (150 if not backend.scip else 120)
+            if enough and c.lost > 0 and c.duplicates > 0 and c.malformed > 0:
+                break
+            assert time.monotonic() < deadline, (c, sim.stats())
         sim.set_faults()
         stats = sim.stats()
         h = drv.health()
         c = h.counters
         got = np.array([p.frame_counter for p in faulty])
         assert np.all(np.diff(got) >= 1), "a duplicate or a late frame was delivered"
-        assert c.lost > 0 and c.duplicates > 0 and c.malformed > 0, (c, stats)
-        assert c.received == (180 if not backend.scip else 150)
+        assert c.received == 30 + len(faulty)
         bad = [p.frame_counter for p in faulty if not _check_profile(p, truth, backend)]
         if backend.name == "rf627-udp":
             # No checksum: a flipped bit among the points cannot be seen (PROTOCOLS.md), but
@@ -329,23 +350,27 @@ class TestProfileSensorConformance:
         if backend.name.endswith("serial"):
             # A pty does not hang up when the device goes silent: silence is the drop.
             drv.silence_timeout_s = 0.5  # type: ignore[union-attr]
-        _read(drv, 10)
+        prev = _read(drv, 10)[-1]
         lost0 = drv.health().counters.lost
         sim.disconnect(1.0)
-        t_back = time.monotonic() + 1.0
         states = set()
         stale = False
         resumed: Profile | None = None
-        while time.monotonic() < t_back + 2.5:
+        # Until the first profile measured after the outage: the sensor's own clock jumps over
+        # it (profiles queued from before come first, one period apart). Told by the device's
+        # clock, not by when the test expects the sensor back, so a late test thread on a loaded
+        # machine cannot mistake one for the other; how soon it comes is not asserted.
+        deadline = time.monotonic() + 60.0
+        while resumed is None:
+            assert time.monotonic() < deadline, f"no profile after the outage: {drv.health()}"
             p = drv.read(timeout=0.05)  # never raises while the link is down
             h = drv.health()
             states.add(h.state)
             stale |= bool(h.detail.get("stale"))
-            if p is not None and time.monotonic() > t_back - 0.05:
-                resumed = p
-                break
-        assert resumed is not None, drv.health()
-        assert time.monotonic() - t_back < 2.0
+            if p is not None:
+                if p.sensor_time_ns - prev.sensor_time_ns > 0.5e9:
+                    resumed = p
+                prev = p
         h = drv.health()
         assert h.state is LinkState.OPEN
         # What the sensor measured while away shows as lost frames.
@@ -360,7 +385,7 @@ class TestProfileSensorConformance:
         sim.disconnect(0.6, reboot=True)
         t_reboot = time.monotonic()
         after: list[Profile] = []
-        while len(after) < 10 and time.monotonic() < t_reboot + 6.0:
+        while len(after) < 10 and time.monotonic() < t_reboot + 60.0:
             p = drv.read(timeout=0.05)
             if p is None:
                 continue
@@ -508,6 +533,19 @@ def test_scip_driver_rejects_bad_steps_before_connecting() -> None:
         ScipSensor("socket://127.0.0.1:1", cluster=0)
 
 
+def _wait_until_in(thread: threading.Thread, function: str, timeout_s: float = 30.0) -> None:
+    """Wait until ``thread`` runs ``function`` (somewhere down its stack)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        frame = sys._current_frames().get(thread.ident or -1)
+        while frame is not None:
+            if frame.f_code.co_name == function:
+                return
+            frame = frame.f_back
+        assert time.monotonic() < deadline, f"{thread.name} never reached {function}"
+        time.sleep(0.01)
+
+
 def test_close_from_another_thread_ends_a_blocking_read() -> None:
     """The daemon's reader thread blocks in read(); closing the driver must release it."""
     with socket.socket() as server:
@@ -522,8 +560,8 @@ def test_close_from_another_thread_ends_a_blocking_read() -> None:
             results: list[object] = []
             t = threading.Thread(target=lambda d=drv, r=results: r.append(d.read(timeout=None)))
             t.start()
-            time.sleep(0.2)
+            _wait_until_in(t, "_read_internal")  # in the driver's read (a sleep could be short)
             drv.close()
-            t.join(2.0)
+            t.join(30.0)  # generous: released at once, but the thread may wait for a CPU
             assert not t.is_alive() and results == [None]
             assert drv.health().state is LinkState.CLOSED

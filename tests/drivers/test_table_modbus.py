@@ -1,12 +1,15 @@
-"""Modbus rotary-table driver against the simulated table, over TCP and RTU on a pty."""
+"""Modbus rotary-table driver against the simulated table, over TCP and RTU on a pty.
+
+Ports are on a loopback address of the run's own or held while in use (two test runs on one
+machine never collide); waits are for states, with generous timeouts."""
 
 from __future__ import annotations
 
 import math
-import socket
 import time
 
 import pytest
+from support import RefusingPort, free_tcp_port, own_loopback_host
 
 from wristscan.drivers.base import DriverInitError, LinkState
 from wristscan.drivers.registry import load
@@ -14,12 +17,6 @@ from wristscan.drivers.sim.table import SimulatedTable, TableSimConfig
 from wristscan.drivers.table_modbus import ModbusTable
 
 FAST = {"max_speed_deg_s": 360.0, "accel_deg_s2": 3600.0}
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def test_registry_names_the_driver() -> None:
@@ -37,7 +34,7 @@ def test_reads_states_and_turns(transport: str) -> None:
             else {"serial_port": ep["port_path"]}
         )
         with ModbusTable(transport=transport, poll_hz=200.0, **kwargs) as table:  # type: ignore[arg-type]
-            states = [table.read(timeout=1.0) for _ in range(10)]
+            states = [table.read(timeout=10.0) for _ in range(10)]
             assert all(s is not None for s in states)
             times = [s.host_time_ns for s in states if s is not None]
             assert times == sorted(times)
@@ -45,7 +42,7 @@ def test_reads_states_and_turns(transport: str) -> None:
             assert table.angle() == pytest.approx(math.radians(45.0), abs=1e-6)
             assert sim.true_angle() == pytest.approx(math.radians(45.0), abs=1e-6)
             table.move_to(math.radians(-20.0))
-            st = table.read(timeout=1.0)
+            st = table.read(timeout=10.0)
             assert st is not None and st.angle_rad == pytest.approx(math.radians(-20.0), abs=1e-6)
             assert table.counters.received == 11
 
@@ -66,33 +63,39 @@ def test_offset_and_little_word_order() -> None:
 
 
 def test_unreachable_table_is_an_init_error() -> None:
-    table = ModbusTable(host="127.0.0.1", port=_free_port(), timeout_s=0.3)
-    with pytest.raises(DriverInitError, match="cannot connect"):
-        table.open()
+    with RefusingPort() as refusing:  # bound, not listening: nobody can take it meanwhile
+        table = ModbusTable(host=refusing.host, port=refusing.port, timeout_s=0.3)
+        with pytest.raises(DriverInitError, match="cannot connect"):
+            table.open()
     assert table.health().state is LinkState.FAILED
     table.close()  # idempotent on a device that never opened
 
 
 def test_reconnects_when_the_table_comes_back() -> None:
-    port = _free_port()
-    cfg = TableSimConfig(port=port, **FAST)
+    # The table comes back on the same port: one on an address of this run's own, which no
+    # other process takes while the table is away.
+    host = own_loopback_host()
+    port = free_tcp_port(host)
+    cfg = TableSimConfig(host=host, port=port, **FAST)
     sim = SimulatedTable(cfg).start()
-    table = ModbusTable(host="127.0.0.1", port=port, poll_hz=100.0, timeout_s=0.3).open()
+    table = ModbusTable(host=host, port=port, poll_hz=100.0, timeout_s=0.3).open()
     try:
-        assert table.read(timeout=1.0) is not None
+        assert table.read(timeout=10.0) is not None
         sim.stop()
-        # Reads during the outage return None; no exception reaches the caller.
-        t_end = time.monotonic() + 1.0
-        while time.monotonic() < t_end:
+        # Reads during the outage return None, no exception reaches the caller, until the
+        # driver knows the link is lost (at least 1 s of reads; generous deadline).
+        t_min = time.monotonic() + 1.0
+        deadline = time.monotonic() + 30.0
+        while time.monotonic() < t_min or table.health().state is not LinkState.RECONNECTING:
+            assert time.monotonic() < deadline, table.health()
             assert table.read(timeout=0.2) is None
-        assert table.health().state is LinkState.RECONNECTING
         sim = SimulatedTable(cfg).start()
-        t_back = time.monotonic()
+        # Back: states again (how soon depends on the load and is not asserted).
+        deadline = time.monotonic() + 30.0
         state = None
-        while state is None and time.monotonic() - t_back < 5.0:
+        while state is None and time.monotonic() < deadline:
             state = table.read(timeout=0.2)
         assert state is not None
-        assert time.monotonic() - t_back < 2.0
         assert table.counters.reconnects >= 1
         assert table.health().state is LinkState.OPEN
     finally:

@@ -3,7 +3,13 @@
 Usage: python wsc1_subscriber.py ENDPOINT PREFIX OUT.npz SECONDS
 
 Subscribes to ``PREFIX/cloud``, decodes every payload by the documented layout, and saves all
-points plus each batch's header fields. Prints one line "ready" once subscribed.
+points plus each batch's header fields, and for every point the UTC time of its profile's
+exposure (``point_t``: what tells a forward sweep from the backward one), from the profile index
+block when the daemon publishes it (the batch's profiles evenly spread from its first exposure to
+its last), else the batch's first exposure. Prints one line
+"ready" once subscribed. Stops after SECONDS, or earlier once a line ``stop UTC_NS`` has come on
+stdin and a batch whose first exposure is at or after ``UTC_NS`` has arrived (everything exposed
+before that instant is in; batches are published in order, empty ones too).
 """
 
 from __future__ import annotations
@@ -11,7 +17,7 @@ from __future__ import annotations
 import json
 import struct
 import sys
-import time
+import threading
 
 import numpy as np
 import zenoh
@@ -26,7 +32,10 @@ def decode(buf: bytes) -> dict[str, object]:
     off = 64 + 12 * n
     if flags & 1:
         off += n
+    t = np.full(n, t0, dtype=np.int64)
     if flags & 2:
+        index = np.frombuffer(buf, "<u4", n, off).astype(np.float64)
+        t += np.rint((t1 - t0) * index / max(n_prof - 1, 1)).astype(np.int64)
         off += 4 * n
     assert off == len(buf), (off, len(buf))
     return {
@@ -36,7 +45,7 @@ def decode(buf: bytes) -> dict[str, object]:
         "n_profiles": n_prof,
         "frame": frame.rstrip(b"\0").decode(),
         "xyz": xyz,
-        "encoding_ok": True,
+        "t": t,
     }
 
 
@@ -48,20 +57,35 @@ def main() -> int:
     conf.insert_json5("scouting/multicast/enabled", "false")
     batches: list[dict[str, object]] = []
     encodings: set[str] = set()
+    stop_at = [2**63 - 1]  # UTC ns: done once a batch exposed at or after it has come
+    done = threading.Event()
 
     def on_sample(sample: zenoh.Sample) -> None:
         encodings.add(str(sample.encoding))
-        batches.append(decode(sample.payload.to_bytes()))
+        b = decode(sample.payload.to_bytes())
+        batches.append(b)
+        if int(b["t0"]) >= stop_at[0]:  # type: ignore[call-overload]
+            done.set()
+
+    def read_stdin() -> None:
+        for line in sys.stdin:
+            words = line.split()
+            if len(words) == 2 and words[0] == "stop":
+                stop_at[0] = int(words[1])
+                if batches and int(batches[-1]["t0"]) >= stop_at[0]:  # type: ignore[call-overload]
+                    done.set()
 
     with zenoh.open(conf) as session:
         sub = session.declare_subscriber(f"{prefix}/cloud", on_sample)
+        threading.Thread(target=read_stdin, daemon=True).start()
         print("ready", flush=True)
-        time.sleep(seconds)
+        done.wait(seconds)
         sub.undeclare()
     xyz = np.concatenate([b["xyz"] for b in batches]) if batches else np.zeros((0, 3))
     np.savez(
         out,
         xyz=xyz,
+        point_t=np.concatenate([b["t"] for b in batches]) if batches else np.zeros(0, np.int64),
         seq=np.array([b["seq"] for b in batches], dtype=np.int64),
         t0=np.array([b["t0"] for b in batches], dtype=np.int64),
         n_profiles=np.array([b["n_profiles"] for b in batches], dtype=np.int64),

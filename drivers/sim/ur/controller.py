@@ -72,10 +72,18 @@ def _ports_free(host: str) -> bool:
 
 
 def pick_free_loopback_host(rng: random.Random | None = None, attempts: int = 100) -> str:
-    """A random ``127.0.0.x`` (x in 2..250) whose ports 29999, 30001, 30003, 30004 are free now."""
-    r = rng or random.Random()
+    """A random loopback address ``127.a.b.c`` (a 1..255, b 0..255, c 1..254) whose ports 29999,
+    30001, 30003, 30004 are free now.
+
+    The whole of 127.0.0.0/8 reaches loopback on Linux; ``127.0.x.y`` is left out, where fixed
+    addresses live (127.0.0.1, the configurations' 127.0.0.2, 127.0.0.53 of systemd-resolved,
+    127.0.1.1 of Debian's host name). Among 16 million addresses two test runs on one machine
+    (two CI jobs, say) do not meet, so whatever a run binds on an address of its own, free ports
+    chosen by binding port 0 and releasing it included, cannot collide with another run; nor
+    with this machine's outgoing connections, whose local address is 127.0.0.1."""
+    r = rng or random.Random()  # seeded from os.urandom: independent of random.seed()
     for _ in range(attempts):
-        host = f"127.0.0.{r.randint(2, 250)}"
+        host = f"127.{r.randint(1, 255)}.{r.randint(0, 255)}.{r.randint(1, 254)}"
         if _ports_free(host):
             return host
     raise RuntimeError("no loopback address with free UR ports found")
@@ -131,7 +139,7 @@ class SimulatedController(SimProcess):
         truth_ring_name: str | None = None,
         attempts: int = 5,
     ) -> SimulatedController:
-        """Start on a random free ``127.0.0.x`` (``config.host`` is replaced), retrying when
+        """Start on a random free ``127.a.b.c`` (``config.host`` is replaced), retrying when
         another process takes the address between the check and the bind. Stop it (or use it as
         a context manager) as usual."""
         base = config or ControllerConfig()

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from support import TRUE_POSES_ONLY
 from typer.testing import CliRunner
 
 from wristscan.calib import handeye, se3, synthetic
@@ -32,6 +33,12 @@ ROOT = Path(__file__).resolve().parents[3]
 X_TRUE = se3.pose_to_matrix([0.060, 0.010, 0.200, 0.020, -0.015, 0.010])
 BALL = np.array([0.45, -0.20, 0.16])
 R_BALL = 0.0127
+NOISE_M = 20e-6
+"""The simulated sensor's noise (1 sigma along the ray) of config/sim.toml."""
+SIM_LATENCY_S = 0.002
+"""The simulated sensor's latency (config/sim.toml)."""
+CONFIGURED_LATENCY_S = 0.001
+"""What the cell tests below tell the daemon (``[sensor] latency_s``)."""
 
 
 def _rot_err_deg(A: np.ndarray, B: np.ndarray) -> float:
@@ -329,7 +336,8 @@ def _free_udp_port() -> int:
 
 def _sim_config(tmp_path: Path, *, motion: bool = True, calib_file: str | None = None) -> Path:
     """config/sim.toml on a free controller address and UDP port, without the rotary table,
-    with light profiles (512 points) so that the loaded test host keeps up."""
+    with light profiles (512 points) so that the loaded test host keeps up, and ``[sensor]
+    latency_s`` 1 ms short of the simulator's."""
     from wristscan.drivers.sim.ur.controller import pick_free_loopback_host
 
     text = (ROOT / "config" / "sim.toml").read_text()
@@ -339,6 +347,10 @@ def _sim_config(tmp_path: Path, *, motion: bool = True, calib_file: str | None =
     text = re.sub(r"\n\[table\]\n.*?\n(?=\[)", "\n", text, flags=re.S)
     text = text.replace("[sim.table]\nenabled = true", "[sim.table]\nenabled = false")
     text = text.replace("n_points = 2048", "n_points = 512")
+    # The daemon is told 1 ms of the simulator's 2 ms: the procedure must find the rest.
+    line = "latency_s = 0.002                     # exposure to device timestamp"
+    assert line in text and "\nlatency_s = 0.002\n" in text  # [sensor], then [sim.sensor]
+    text = text.replace(line, f"latency_s = {CONFIGURED_LATENCY_S!r}  #")
     if not motion:
         text = text.replace("motion_enabled = true ", "motion_enabled = false")
     if calib_file is not None:
@@ -365,7 +377,7 @@ def sim_cell(tmp_path: Path) -> Any:
 
     def start(**kw: Any) -> tuple[Any, Path]:
         path = _sim_config(tmp_path, **kw)
-        cell = start_cell(_load(path))
+        cell = start_cell(_load(path), **TRUE_POSES_ONLY)
         cells.append(cell)
         jog_to_ball(cell)
         return cell, path
@@ -445,6 +457,13 @@ def test_protective_stop_aborts_and_keeps_the_calibration_in_force(
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_automatic_calibration_on_the_simulated_cell(tmp_path: Path, sim_cell: Any) -> None:
+    """The whole procedure, quick (2 x 2 places, 4 orientations, 50 mm/s), against the
+    simulator's truth. This cell's robot is perfect (``repeatability_m = 0``): what is left is the
+    sensor's noise over ~10^5 points, so the bounds are 0.3x the benchmark's targets (0.05 mm,
+    0.02 deg; it measures 0.013-0.027 mm with the data sheet's robot repeatability and the full
+    plan: ``benchmarks/calibration.py``). The daemon is told 1 ms of the simulator's 2 ms
+    latency: the procedure must find the missing 1 ms (the apparent offset of its sweep pairs)
+    and remove it from its sweeps."""
     cell, path = sim_cell()
     truth = np.array(cell.truth()["sensor2flange"])
     out, report = tmp_path / "s2f.json", tmp_path / "report.html"
@@ -457,9 +476,26 @@ def test_automatic_calibration_on_the_simulated_cell(tmp_path: Path, sim_cell: A
     assert res.exit_code == 0, res.output
     calib = read_calibration(out, RobotIdentity("UR5e"), SensorIdentity("lpf1-udp", "1"))
     assert calib.method == cs.METHOD
-    assert np.linalg.norm(calib.transform[:3, 3] - truth[:3, 3]) < 0.2e-3
-    assert _rot_err_deg(calib.transform, truth) < 0.1
-    assert calib.parameters["check_centre_error_m"] < 0.2e-3
+    prm = calib.parameters
+    t_err = float(np.linalg.norm(calib.transform[:3, 3] - truth[:3, 3]))
+    r_err = _rot_err_deg(calib.transform, truth)
+    ball = np.array([prm[f"ball_centre_{a}_m"] for a in "xyz"])
+    ball_err = float(np.linalg.norm(ball - np.array(cell.truth()["ball_centre_base_m"])))
+    # What the pairs' disagreement says the configured latency lacks: the simulator's 2 ms less
+    # the 1 ms the test configured, give or take the links' few 0.1 ms.
+    assert cell.truth()["sensor_latency_s"] == SIM_LATENCY_S
+    offset_err = prm["apparent_latency_offset_s"] - (SIM_LATENCY_S - CONFIGURED_LATENCY_S)
+    figures = (
+        f"translation {t_err * 1e3:.4f} mm, rotation {r_err:.4f} deg, ball {ball_err * 1e3:.4f} "
+        f"mm, check centre {prm['check_centre_error_m'] * 1e3:.4f} mm, residual "
+        f"{calib.residuals.rms_m * 1e6:.1f} um, apparent latency offset "
+        f"{prm['apparent_latency_offset_s'] * 1e3:+.3f} ms"
+    )
+    print(figures)
+    assert t_err < 0.015e-3 and r_err < 0.006, figures
+    assert ball_err < 0.015e-3 and prm["check_centre_error_m"] < 0.015e-3, figures
+    assert calib.residuals.rms_m < NOISE_M, figures
+    assert abs(offset_err) < 0.25e-3, figures
     assert "[fov 4/8]" in res.output and "[orient 8/8]" in res.output
     assert "sensor2flange  p[" in res.output
     assert report.read_text().count("data:image/png") == 4
@@ -535,11 +571,20 @@ def test_manual_mode_records_while_the_operator_moves(tmp_path: Path, sim_cell: 
     assert sum(m.startswith("Recording") for m in asked) >= 7
     assert result.manual and result.check is None
     # Each round trip became a forward/backward pair; at most one place left out as inconsistent.
-    assert {w.direction for w in result.sweeps} == {1, -1}
+    # On a starved host (the controller's cycles half a second late) a round trip now and then
+    # does not split into its legs and is used as one sweep (direction 0): at most one.
+    directions = [w.direction for w in result.sweeps]
+    assert {1, -1} <= set(directions) and directions.count(0) <= 1, directions
     assert len({w.location for w in result.sweeps}) >= 6
     assert result.latency is not None and result.latency.n_pairs >= 6
-    assert np.linalg.norm(result.sensor2flange[:3, 3] - X[:3, 3]) < 0.3e-3
-    assert _rot_err_deg(result.sensor2flange, X) < 0.2
+    # A perfect simulated robot: the sensor's noise alone (see the automatic test).
+    t_err = float(np.linalg.norm(result.sensor2flange[:3, 3] - X[:3, 3]))
+    r_err = _rot_err_deg(result.sensor2flange, X)
+    offset = result.latency.offset_s - (SIM_LATENCY_S - CONFIGURED_LATENCY_S)
+    figures = f"translation {t_err * 1e3:.4f} mm, rotation {r_err:.4f} deg, offset {offset:.6f} s"
+    print(figures)
+    assert t_err < 0.015e-3 and r_err < 0.01, figures
+    assert abs(offset) < 0.25e-3, figures
     assert read_calibration(tmp_path / "s2f.json").notes.startswith("manual mode")
     assert (tmp_path / "report.md").exists()
     assert any(e.stage == "orient" for e in events)

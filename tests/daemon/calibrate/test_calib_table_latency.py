@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from support import TRUE_POSES_ONLY
 from typer.testing import CliRunner
 
 from wristscan.calib import se3
@@ -380,8 +381,14 @@ def sim_config(
 @pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_table_procedure_on_the_simulated_cell(tmp_path: Path) -> None:
-    path, cfg = sim_config(tmp_path)
-    spec = table_ball_cell(cfg, start_above="table_ball")
+    """``calibrate table`` (6 angles, 40 mm/s) against the simulator's true axis: the axis
+    direction within 0.01 deg (the benchmark's target, ``benchmarks/calibration_table_latency.py``,
+    which measures 0.0024 deg with the data sheet's robot repeatability; this cell's robot is
+    perfect), the encoder offset within 0.01 deg (a table whose encoder reads 0.05 deg off fails
+    here), the table frame's origin on the platter top on the true axis (the sweeps run one way:
+    a configured latency 1 ms off moves every ball centre, and so the axis, by 40 um)."""
+    path, cfg = sim_config(tmp_path, latency_s=0.0015, configured_latency_s=0.0015)
+    spec = table_ball_cell(cfg, start_above="table_ball", **TRUE_POSES_ONLY)
     write_truth_calibration(cfg, spec)
     truth = table_truth(spec)
     with SimulatedCell(spec):
@@ -395,26 +402,48 @@ def test_table_procedure_on_the_simulated_cell(tmp_path: Path) -> None:
     assert r.exit_code == 0, r.output
     assert "tilt" in r.output and "encoder offset" in r.output
     calib = read_calibration(tmp_path / "table.json", RobotIdentity("UR5e"), kind="table")
-    direction = se3.invert(np.asarray(calib.transform))[:3, 2]
-    tilt_err = math.degrees(math.acos(min(1.0, float(direction @ truth["axis_direction"]))))
-    assert tilt_err < 0.05
-    assert calib.parameters["tilt_deg"] == pytest.approx(truth["tilt_deg"], abs=0.05)
-    assert calib.parameters["encoder_offset_rad"] == pytest.approx(
-        truth["encoder_offset_rad"], abs=0.01
+    table2base = se3.invert(np.asarray(calib.transform))
+    direction = table2base[:3, 2]
+    axis_err = math.degrees(math.acos(min(1.0, float(direction @ truth["axis_direction"]))))
+    tilt_err = calib.parameters["tilt_deg"] - truth["tilt_deg"]
+    offset_err = math.degrees(
+        math.remainder(
+            calib.parameters["encoder_offset_rad"] - truth["encoder_offset_rad"], math.tau
+        )
     )
     # The origin is on the platter top: 60 mm below the ball centre, on the true axis.
-    origin = se3.invert(np.asarray(calib.transform))[:3, 3]
-    assert origin[2] == pytest.approx(0.03, abs=0.5e-3)
+    origin = table2base[:3, 3]
+    rel = origin - np.asarray(truth["axis_point_m"])
+    off_axis = float(np.linalg.norm(rel - (rel @ direction) * direction))
+    figures = (
+        f"axis {axis_err:.4f} deg, tilt {tilt_err:+.4f} deg, encoder offset {offset_err:+.4f} deg, "
+        f"origin {off_axis * 1e6:.1f} um off the axis, height {(origin[2] - 0.03) * 1e6:+.1f} um"
+    )
+    print(figures)
+    assert axis_err < 0.01 and abs(tilt_err) < 0.01, figures
+    assert abs(offset_err) < 0.01, figures
+    assert off_axis < 20e-6 and abs(origin[2] - 0.03) < 20e-6, figures
     assert (tmp_path / "table-report.html").exists()
+
+
+SIM_LATENCY_S = 0.0026
+"""The latency test's simulated sensor: not a value an estimator could guess."""
+CONFIGURED_LATENCY_S = 0.0004
+"""What the latency test tells the daemon (the procedure measures the rest)."""
 
 
 @pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_latency_procedure_on_the_simulated_cell(tmp_path: Path) -> None:
-    """1.5 ms simulated, not told. The truth to meet is the pairing offset the simulator really
-    had (it adds its own sending delay when the host is busy), measured from its ground truth."""
-    _, cfg = sim_config(tmp_path, latency_s=0.0015, configured_latency_s=0.0)
-    spec = table_ball_cell(cfg, start_above="ball", batch_s=2e-4)
+    """2.6 ms simulated, 0.4 ms configured. The truth to meet is the simulator's latency plus
+    the links' delays, measured from its ground truth independently of the synchroniser
+    (``pairing_truth_tap``); within 0.15 ms (the benchmark's target is 0.1 ms,
+    ``benchmarks/calibration_table_latency.py``, which uses three sweep pairs per speed where
+    this test has one)."""
+    _, cfg = sim_config(
+        tmp_path, latency_s=SIM_LATENCY_S, configured_latency_s=CONFIGURED_LATENCY_S
+    )
+    spec = table_ball_cell(cfg, start_above="ball", batch_s=2e-4, **TRUE_POSES_ONLY)
     write_truth_calibration(cfg, spec)
     with SimulatedCell(spec) as cell:
         assert cell.sensor is not None and cell.controller is not None
@@ -423,13 +452,17 @@ def test_latency_procedure_on_the_simulated_cell(tmp_path: Path) -> None:
             cfg, LatencyOptions(speeds_m_s=(0.05, 0.1, 0.2)), confirmed=True, acquisition=tap
         )
     actual = truth_offset_s(tap, res)
-    # The nominal 1.5 ms, less the robot stream's own delay floor (~0.1-0.2 ms: its mapped
-    # times are that late), plus what a busy host adds to the simulator's sending.
-    assert 0.0010 < actual < 0.005
-    assert res.latency_s == pytest.approx(actual, abs=0.3e-3)
-    assert res.std_s < 0.3e-3 and res.estimate.n_sweeps == 6
-    assert res.configured_latency_s == 0.0
-    assert res.toml_line().startswith("latency_s = 0.00")
+    figures = (
+        f"found {res.latency_s * 1e3:.4f} ms (+- {res.std_s * 1e3:.4f}), truth {actual * 1e3:.4f}"
+        f" ms (simulator {SIM_LATENCY_S * 1e3:.1f} ms plus the links)"
+    )
+    print(figures)
+    # The links add the smallest delay of the profiles and take off the robot stream's own.
+    assert abs(actual - SIM_LATENCY_S) < 0.3e-3, figures
+    assert abs(res.latency_s - actual) < 0.15e-3, figures
+    assert res.std_s < 0.1e-3 and res.estimate.n_sweeps == 6, figures
+    assert res.configured_latency_s == CONFIGURED_LATENCY_S
+    assert res.toml_line() == f"latency_s = {res.latency_s:.6f}"
 
 
 def test_protective_stop_aborts_and_keeps_the_calibration(tmp_path: Path) -> None:

@@ -3,6 +3,10 @@
 The publisher is the daemon's own zenoh face (DaemonZenoh) on loopback, publishing synthetic
 batches whose coordinates encode their sequence number, and skipping every 5th sequence number
 to stand for batches lost on the way.
+
+Endpoints are on a loopback address of the run's own (two test runs on one machine never meet),
+and no assert depends on how fast a loaded machine runs: waits are for events (a batch in the
+file being written, a line) with generous timeouts.
 """
 
 from __future__ import annotations
@@ -10,7 +14,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -21,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from support import RefusingPort, free_tcp_port, own_loopback_host
 from typer.testing import CliRunner
 
 from wristscan.daemon.cli.app import app
@@ -38,12 +42,6 @@ STATS = {
     "dropped": {"no_robot_state": 60, "late": 40},
     "batches": 90,
 }
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def batch_xyz(seq: int) -> np.ndarray:
@@ -69,7 +67,8 @@ class Daemon:
 
 @pytest.fixture
 def daemon() -> Iterator[Daemon]:
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    host = own_loopback_host()
+    endpoint = f"tcp/{host}:{free_tcp_port(host)}"
     session = open_session(listen=[endpoint])
     dz = DaemonZenoh(session, PREFIX, stats=lambda: STATS)
     stop = threading.Event()
@@ -107,6 +106,17 @@ def daemon() -> Iterator[Daemon]:
 
 def _cli(*args: str) -> list[str]:
     return [sys.executable, "-m", "wristscan.daemon.cli", *args]
+
+
+def _cli_interruptible(*args: str) -> list[str]:
+    """:func:`_cli` with SIGINT handled as in a terminal, even when this test run ignores it (a
+    background job of a shell, nohup, some CI runners): the commands keep an ignored SIGINT
+    ignored on purpose, and the child would inherit it."""
+    start = (
+        "import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+        "sys.argv[0] = 'wristscan'; runpy.run_module('wristscan.daemon.cli', run_name='__main__')"
+    )
+    return [sys.executable, "-c", start, *args]
 
 
 def _run(args: list[str], cwd: Path, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
@@ -161,17 +171,18 @@ def test_record_ply_stops_at_point_limit(daemon: Daemon, tmp_path: Path) -> None
 
 
 def test_record_npz_for_a_duration(daemon: Daemon, tmp_path: Path) -> None:
-    t0 = time.monotonic()
     res = _run(_cli("record", *daemon.args(), "-o", "scan.npz", "--duration", "1.0"), tmp_path)
-    wall = time.monotonic() - t0
     assert res.returncode == 0, res.stderr
     summary = _summary(res.stdout)
+    # Stopped by the duration, not before it (a lower bound, which load cannot break); that it
+    # stops at all is the run's own timeout, so no stopwatch bound above (a loaded machine
+    # stretches the last receive and the file's writing).
     assert summary["stopped"] == "duration reached"
-    assert 1.0 <= float(summary["duration"].split()[0]) < 2.0
-    assert wall < 30
+    assert float(summary["duration"].split()[0]) >= 1.0
     with np.load(tmp_path / "scan.npz") as d:
         seq = d["seq"].astype(np.int64)
-        assert seq.size >= 10  # ~80 batches/s are published
+        # ~80 batches/s are published; a lost batch shows once a sequence spans a 5th seq.
+        assert seq.size >= 5
         assert d["xyz"].shape == (seq.size * B, 3)
         np.testing.assert_array_equal(d["n_points"], B)
         np.testing.assert_array_equal(d["n_profiles"], PROFILES)
@@ -192,7 +203,7 @@ def test_signal_finishes_the_file_cleanly(
     daemon: Daemon, tmp_path: Path, sig: signal.Signals
 ) -> None:
     proc = subprocess.Popen(
-        _cli("record", *daemon.args(), "-o", "scan.ply"),
+        _cli_interruptible("record", *daemon.args(), "-o", "scan.ply"),
         cwd=tmp_path,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -202,7 +213,9 @@ def test_signal_finishes_the_file_cleanly(
         assert proc.stderr is not None
         line = proc.stderr.readline()
         assert line.startswith("recording wristscan/rectest/cloud"), line
-        time.sleep(0.7)
+        # Until 3 batches are in the file being written (its body, flushed as it fills), not for
+        # a fixed 0.7 s, which a loaded machine could spend before the first batch.
+        _wait_for_body(tmp_path, 3 * B * _BATCH_RECORD_BYTES)
         assert not (tmp_path / "scan.ply").exists()
         proc.send_signal(sig)
         out, err = proc.communicate(timeout=30)
@@ -217,6 +230,21 @@ def test_signal_finishes_the_file_cleanly(
     assert len(seqs) >= 3
     assert summary["points"] == str(len(seqs) * B)
     assert os.listdir(tmp_path) == ["scan.ply"]
+
+
+_BATCH_RECORD_BYTES = plyio._vertex_dtype(False, True, False).itemsize
+"""Bytes per point of the binary body (x, y, z and intensity)."""
+
+
+def _wait_for_body(folder: Path, n_bytes: int, timeout_s: float = 60.0) -> None:
+    """Wait until the temporary body of the PLY file being recorded holds ``n_bytes``."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        sizes = [p.stat().st_size for p in folder.glob(".scan.ply.*.body.tmp")]
+        if sizes and max(sizes) >= n_bytes:
+            return
+        assert time.monotonic() < deadline, f"the recorder wrote {sizes} bytes, not {n_bytes}"
+        time.sleep(0.02)
 
 
 def test_status_shows_counters(daemon: Daemon, tmp_path: Path) -> None:
@@ -241,7 +269,7 @@ def test_status_shows_counters(daemon: Daemon, tmp_path: Path) -> None:
 
 def test_status_watch_until_sigint(daemon: Daemon, tmp_path: Path) -> None:
     proc = subprocess.Popen(
-        _cli("status", *daemon.args(), "--json", "--watch"),
+        _cli_interruptible("status", *daemon.args(), "--json", "--watch"),
         cwd=tmp_path,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -261,7 +289,15 @@ def test_status_watch_until_sigint(daemon: Daemon, tmp_path: Path) -> None:
 
 
 def test_no_daemon_is_a_clear_error(tmp_path: Path) -> None:
-    nobody = ["--prefix", PREFIX, "--connect", f"tcp/127.0.0.1:{_free_port()}", "--timeout", "1"]
+    # Nobody there: a port held bound and not listening (no other process can take it).
+    refusing = RefusingPort(own_loopback_host())
+    nobody = ["--prefix", PREFIX, "--connect", f"tcp/{refusing.host}:{refusing.port}"]
+    nobody += ["--timeout", "1"]
+    with refusing:
+        _no_daemon(nobody, tmp_path)
+
+
+def _no_daemon(nobody: list[str], tmp_path: Path) -> None:
     res = _run(_cli("record", *nobody, "-o", "scan.ply"), tmp_path)
     assert res.returncode == 1
     assert res.stderr.startswith("error: no wristscan daemon answered on wristscan/rectest")

@@ -2,7 +2,10 @@
 
 A real LPF1-over-UDP driver on loopback (kernel receipt stamps) receives datagrams from a plain
 UDP socket; the robot is a silent stand-in device (no states: the profiles stay pending, which
-is all the schedule needs)."""
+is all the schedule needs).
+
+The first tick is put a minute away, so that "before the first tick" holds however slowly a
+loaded machine runs the test: waits are for the counters, not for a fixed time."""
 
 from __future__ import annotations
 
@@ -53,7 +56,10 @@ def _datagrams(n: int, n_points: int = 256) -> list[bytes]:
     return [m[0] for m in enc.encode(np.arange(n), t, z, np.ones(z.shape, bool))]
 
 
-def _received_before_first_tick(read_ahead_s: float) -> tuple[int, dict[str, Any]]:
+def _received_before_first_tick(read_ahead_s: float, expect: int) -> tuple[int, dict[str, Any]]:
+    """Send 20 profiles, then wait until ``expect`` are received (up to 30 s) or, with
+    ``expect`` 0, for the time read-ahead takes to read them (0.5 s, many of its 0.02 s
+    steps); returns what was received, all well before the first tick (60 s)."""
     sensor = Lpf1UdpSensor(bind_host="127.0.0.1", port=0)
     robot = _SilentRobot()
     sensor.open()
@@ -65,7 +71,7 @@ def _received_before_first_tick(read_ahead_s: float) -> tuple[int, dict[str, Any
         Pairer(PairerConfig()),
         AlignmentSetup(np.eye(4)),
         None,
-        settings=PipelineSettings(batch_s=1.0, read_ahead_s=read_ahead_s),
+        settings=PipelineSettings(batch_s=60.0, read_ahead_s=read_ahead_s),
     )
     tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:
@@ -73,7 +79,9 @@ def _received_before_first_tick(read_ahead_s: float) -> tuple[int, dict[str, Any
         pipeline.start()
         for g in _datagrams(20):
             tx.sendto(g, sensor.local_address)
-        time.sleep(0.3)  # well before the first tick (1 s)
+        deadline = time.monotonic() + (30.0 if expect else 0.5)
+        while pipeline.stats()["received"] < max(expect, 1) and time.monotonic() < deadline:
+            time.sleep(0.01)
         early = pipeline.stats()
     finally:
         pipeline.stop(drain=False)
@@ -84,7 +92,7 @@ def _received_before_first_tick(read_ahead_s: float) -> tuple[int, dict[str, Any
 
 
 def test_the_worker_reads_ahead_between_ticks() -> None:
-    received, stats = _received_before_first_tick(read_ahead_s=0.02)
+    received, stats = _received_before_first_tick(read_ahead_s=0.02, expect=20)
     assert received == 20
     # Read and queued for pairing: pending (no robot state), none lost, counters add up.
     assert stats["pending"] == 20 and stats["published"] == 0 and not stats["dropped"]
@@ -92,5 +100,5 @@ def test_the_worker_reads_ahead_between_ticks() -> None:
 
 
 def test_without_read_ahead_the_socket_is_read_at_ticks_only() -> None:
-    received, _ = _received_before_first_tick(read_ahead_s=0.0)
+    received, _ = _received_before_first_tick(read_ahead_s=0.0, expect=0)
     assert received == 0

@@ -12,12 +12,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
+from support import TRUE_POSES_ONLY
 from typer.testing import CliRunner
 
 from wristscan.calib import kinematics, se3
 from wristscan.calib.edge import EdgeModel
 from wristscan.daemon.cli.app import app
 from wristscan.daemon.config import Config, load_config
+from wristscan.daemon.io.calibfile import read_calibration
 from wristscan.daemon.io.urpose import parse_ur_pose
 from wristscan.daemon.procedure.acquisition import Sweep
 from wristscan.daemon.simcell.cell import dump_toml, free_sim_config
@@ -326,7 +328,7 @@ def test_measure_and_teach_plane_on_the_simulated_cell(tmp_path: Path) -> None:
     path, cfg = _config(tmp_path)
     scene, truth = tilted_plate_scene(tilt_deg=12.0)
     start = sensor_looking_down(truth.point + np.array([-0.02, -0.01, 0.0]), 0.1)
-    spec = cell_with_scene(cfg, scene, start)
+    spec = cell_with_scene(cfg, scene, start, **TRUE_POSES_ONLY)
     write_truth_calibration(cfg, spec)
     out = tmp_path / "frame.json"
     runner = CliRunner()
@@ -347,10 +349,20 @@ def test_measure_and_teach_plane_on_the_simulated_cell(tmp_path: Path) -> None:
     assert "plane frame   p[" in r.output and ": flat" in r.output
     doc = json.loads(out.read_text())
     T = np.asarray(doc["frame2base"])
-    assert math.degrees(math.acos(min(1.0, float(T[:3, 2] @ truth.normal)))) < 0.01
+    normal_err = math.degrees(math.acos(min(1.0, float(T[:3, 2] @ truth.normal))))
+    # The origin: where the first spot's sensor axis meets the plane, with the sensor where it
+    # truly was (its flange pose, as recorded, with the true sensor2flange).
+    assert cfg.calibration.file is not None
+    in_force = read_calibration(cfg.calibration.file, kind="sensor2flange").transform
     s0 = np.asarray(doc["spots"][0]["sensor2base"])
+    s0 = s0 @ se3.invert(in_force) @ spec.sensor.sensor2flange_matrix()
     origin_true = truth.intersect_line(s0[:3, 3], s0[:3, 2])
-    assert float(np.linalg.norm(T[:3, 3] - origin_true)) < 5e-5
+    origin_err = float(np.linalg.norm(T[:3, 3] - origin_true))
+    figures = f"normal {normal_err:.5f} deg, origin {origin_err * 1e6:.2f} um"
+    print(figures)
+    # benchmarks/teach.py: <= 0.01 deg, <= 0.05 mm (it measures 0.0007 deg, 0.0003 mm).
+    assert normal_err < 0.005, figures
+    assert origin_err < 15e-6, figures
     np.testing.assert_allclose(se3.pose_to_matrix(doc["ur_pose"]), T, atol=1e-9)
 
 
@@ -363,7 +375,7 @@ def test_teach_edge_and_replay_on_the_simulated_cell(tmp_path: Path) -> None:
     start = sensor_pose_at_edge(truth, phi0, 0.1) @ se3.make(
         se3.rot_x(math.radians(3)), (0.0, 0.0015, 0.003)
     )
-    spec = cell_with_scene(cfg, scene, start)
+    spec = cell_with_scene(cfg, scene, start, **TRUE_POSES_ONLY)
     write_truth_calibration(cfg, spec)
     model = tmp_path / "edge.toml"
     learned = tmp_path / "path.json"
@@ -404,7 +416,11 @@ def test_teach_edge_and_replay_on_the_simulated_cell(tmp_path: Path) -> None:
     phis = truth.azimuth_of(pts)
     dense = truth.dense(float(phis.min()) - 0.02, float(phis.max()) + 0.02, 2e-6)
     d, _ = cKDTree(dense).query(pts)
-    assert float(np.sqrt(np.mean(d**2))) < 1e-4
+    # benchmarks/teach.py: <= 0.1 mm (it measures 0.012 mm); a sensor2flange 0.1 mm off or a
+    # latency error moves the learned points off the rim.
+    edge_rms = float(np.sqrt(np.mean(d**2)))
+    print(f"edge RMS from the true rim {edge_rms * 1e6:.1f} um")
+    assert edge_rms < 30e-6
     assert pts.shape[0] >= 11
     np.testing.assert_allclose(np.linalg.norm(np.diff(pts, axis=0), axis=1), 1e-3, rtol=0.01)
     assert doc["stats"]["max_gap_m"] < 1e-3
@@ -422,7 +438,9 @@ def test_teach_edge_and_replay_on_the_simulated_cell(tmp_path: Path) -> None:
     process = tips[i0 : i1 + 1]
     assert process.shape[0] > 100
     d_tip, _ = cKDTree(dense).query(process)
-    assert float(d_tip.max()) < 2e-4
+    # benchmarks/teach.py: <= 0.2 mm (it measures 0.017 mm).
+    print(f"tool tip from the true rim: largest {float(d_tip.max()) * 1e6:.1f} um")
+    assert float(d_tip.max()) < 50e-6
 
 
 def test_edge_model_taught_from_an_example() -> None:

@@ -1,7 +1,11 @@
-"""Simulated sensors over their real transports, against the ground truth they were given."""
+"""Simulated sensors over their real transports, against the ground truth they were given.
+
+No assert depends on how fast a loaded machine runs: waits are for events with generous
+timeouts, and host times are compared only where causality orders them."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import socket
 import time
@@ -36,13 +40,13 @@ def _udp_receiver() -> socket.socket:
     s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
     s.bind(("127.0.0.1", 0))
-    s.settimeout(2.0)
+    s.settimeout(30.0)  # generous: a datagram is due every few ms, however loaded the machine
     return s
 
 
 def _collect_udp(sock: socket.socket, decode: Callable[[bytes], T | None], n: int) -> list[T]:
     out: list[T] = []
-    deadline = time.monotonic() + 10
+    deadline = time.monotonic() + 60
     while len(out) < n and time.monotonic() < deadline:
         item = decode(sock.recv(70000))
         if item is not None:
@@ -105,9 +109,10 @@ def test_lpf1_udp_profiles_land_on_the_ball_with_true_timing() -> None:
 
         profiles = _collect_udp(rx, decode, 60)
         st = sim.stats()
-    # Sends are timed: the late ones are counted (a stalled simulator sends in a burst).
+    # Sends are timed: the late ones are counted (a stalled simulator sends in a burst). How
+    # late depends on the machine's load; that the two counters agree does not.
     assert 0 <= st["sent_late_5ms"] <= st["profiles_sent"]
-    assert 0 <= st["max_send_late_us"] < 500_000
+    assert (st["sent_late_5ms"] > 0) == (st["max_send_late_us"] > 5000)
     counters = np.array([p.frame_counter for p in profiles])
     assert counters[0] < 5 and np.all(np.diff(counters) == 1)
     prof = profiles[-1]
@@ -154,15 +159,16 @@ def test_lpf1_tcp_hello_then_profiles_and_disconnect() -> None:
         counters = [lpf1.decode_profile(m).frame_counter for m in msgs
                     if m.header.msg_type == lpf1.MsgType.PROFILE]  # fmt: skip
         assert np.all(np.diff(counters) == 1), sim.stats()
-        # Disconnect: the port refuses, then comes back; rebooted: counters restart.
+        # Disconnect: the port refuses, then comes back; rebooted: counters restart. Away for
+        # 1.5 s, so that the refusal is seen however late a loaded machine runs the next line.
         with socket.create_connection(addr, timeout=3) as sock:
-            sim.disconnect(0.4, reboot=True)
-            sock.settimeout(2)
+            sim.disconnect(1.5, reboot=True)
+            sock.settimeout(30)
             while sock.recv(65536):
                 pass  # drained until the device closes the connection
         with pytest.raises(ConnectionRefusedError):
             socket.create_connection(addr, timeout=1).close()
-        deadline = time.monotonic() + 5
+        deadline = time.monotonic() + 30
         while True:
             try:
                 sock = socket.create_connection(addr, timeout=1)
@@ -193,7 +199,7 @@ def test_lpf1_serial_over_a_pty_opened_by_path() -> None:
         try:
             dec = lpf1_reader.SerialDecoder()
             profiles: list[Profile] = []
-            deadline = time.monotonic() + 10
+            deadline = time.monotonic() + 60
             while len(profiles) < 20 and time.monotonic() < deadline:
                 for m in dec.feed(port.read(4096)):
                     if m.header.msg_type == lpf1.MsgType.PROFILE:
@@ -232,19 +238,27 @@ def test_hokuyolx_reads_the_simulated_scip_sensor_over_tcp() -> None:
         try:
             assert (laser.amin, laser.amax, laser.aforw, laser.ares) == (0, 1080, 540, 1440)
             assert laser.scan_freq == 40 and laser.model == cfg.scip_model
+            t_ask_ms = time.time() * 1000
             ts, scan = laser.get_dist()
             t_read_ms = time.time() * 1000
-            scans = list(laser.iter_dist(scans=3))
+            # hokuyolx reads until a blank line, so two replies that share one recv() become
+            # one garbled message (its own limitation: it loses a scan or raises a checksum
+            # error). skips=9: one scan in ten, 0.25 s apart, so that only a reader or simulator
+            # stalled that long on a loaded machine would see two at once (at 40 Hz, 25 ms did).
+            scans = list(laser.iter_dist(scans=3, skips=9))
             state = laser.sensor_state()
             info = sim.info()
         finally:
             laser.close()
     assert scan.shape == (1081,)
-    # hokuyolx counts down the scans it still expects; it can lose one when two replies share a
-    # recv() on a loaded host (its own limitation), so require a count-down that ends at 0.
+    # hokuyolx counts down the scans it still expects; it can lose the first when the command's
+    # answer and the first scan share a recv() (above), so require a count-down that ends at 0.
     pendings = [pending for _, _, pending in scans]
     assert len(pendings) >= 2 and pendings[-1] == 0 and pendings == sorted(pendings, reverse=True)
-    assert abs(ts - t_read_ms) < 100  # hokuyolx maps the 24-bit stamps to UNIX ms
+    # hokuyolx maps the 24-bit stamps to UNIX ms: the scan asked for lies between the ask and
+    # the answer, within the mapping's own error (its tsync round trips; generous, a wrong
+    # mapping is off by the 24-bit wrap, hours, or the epoch).
+    assert t_ask_ms - 1000 < ts < t_read_ms + 1000
     assert state["LASR"] == "ON"
     # The front step looks straight down at the top of the ball, 0.1 m below the sensor origin.
     s2b = np.asarray(info["standalone_flange2base"]) @ np.asarray(info["sensor2flange"])
@@ -268,7 +282,7 @@ def test_scip_serial_with_the_wristscan_decoder() -> None:
         replies: list[scip.Reply] = []
 
         def until(pred: Callable[[], bool]) -> None:
-            deadline = time.monotonic() + 5
+            deadline = time.monotonic() + 30
             while not pred() and time.monotonic() < deadline:
                 replies.extend(dec.feed(port.read(max(1, port.in_waiting))))
             assert pred()
@@ -311,9 +325,11 @@ def test_profiles_use_the_robot_pose_at_the_exposure_instant() -> None:
         return q
 
     with TruthRing.create(width=6, capacity=16384) as ring, TruthRing.create(width=1) as tring:
-        # The truth is known ahead: fill the ring for the next 8 s at 1 kHz.
+        # The truth is known ahead: fill the ring for the next 16 s at 1 kHz (the simulator
+        # starts and sends its 120 profiles within it, however slowly a loaded machine starts
+        # a process).
         t_now = time.monotonic_ns()
-        ts = t_now + np.arange(8000, dtype=np.int64) * 1_000_000
+        ts = t_now + np.arange(16000, dtype=np.int64) * 1_000_000
         for t, q in zip(ts, q_at(ts), strict=True):
             ring.append(int(t), q)
         for t in ts[::10]:
@@ -360,7 +376,7 @@ def test_fault_injection_is_visible_in_the_decoded_stream() -> None:
     counters: list[int] = []
     errors = {"trunc": 0, "crc": 0}
     with rx, SimulatedSensor(cfg) as sim:
-        deadline = time.monotonic() + 10
+        deadline = time.monotonic() + 60
         while len(counters) < 600 and time.monotonic() < deadline:
             d = rx.recv(70000)
             try:
@@ -374,7 +390,13 @@ def test_fault_injection_is_visible_in_the_decoded_stream() -> None:
             if m.header.msg_type == lpf1.MsgType.PROFILE:
                 counters.append(lpf1.decode_profile(m).frame_counter)
         sim.set_faults()  # back to a clean stream
-        time.sleep(0.1)
+        # Everything sent before the switch is in the socket already (loopback delivers within
+        # the send): drop it, however far behind a loaded machine left this reader.
+        rx.setblocking(False)
+        with contextlib.suppress(BlockingIOError):
+            while True:
+                rx.recv(70000)
+        rx.settimeout(30.0)
         clean: list[int] = []
         while len(clean) < 100:
             m = lpf1.parse_message(rx.recv(70000))

@@ -1,7 +1,11 @@
 """The simulated UR controller against the real ur_rtde clients (and raw sockets for the wire).
 
-Every test starts its own controller process on a random free 127.0.0.x address and stops it,
+Every test starts its own controller process on a random free 127.a.b.c address and stops it,
 with every client disconnected, before it ends.
+
+No assert depends on how fast a loaded machine runs: waits are for events (a state, a timestamp,
+a position) with generous timeouts, and host times are compared only where causality orders
+them (the controller sends cycle k at ``start_time_ns + k * period``, never before).
 """
 
 from __future__ import annotations
@@ -70,7 +74,7 @@ def controlled(host: str) -> Iterator[Any]:
         c.disconnect()
 
 
-def settle(r: Any, sim: SimulatedController, timeout_s: float = 5.0) -> None:
+def settle(r: Any, sim: SimulatedController, timeout_s: float = 30.0) -> None:
     """Wait until the receive client holds data from after everything the controller did so far
     (its getters may otherwise return a packet from a few cycles back on a loaded machine)."""
     now = sim.state()["timestamp"]
@@ -80,31 +84,43 @@ def settle(r: Any, sim: SimulatedController, timeout_s: float = 5.0) -> None:
         time.sleep(0.002)
 
 
-def wait_for(predicate: Any, timeout_s: float = 5.0) -> None:
+def wait_for(predicate: Any, timeout_s: float = 30.0) -> None:
     deadline = time.monotonic() + timeout_s
     while not predicate():
         assert time.monotonic() < deadline, "condition not reached in time"
         time.sleep(0.005)
 
 
-def sample_timestamps(r: Any, seconds: float) -> tuple[np.ndarray, float]:
-    """Distinct timestamps seen by polling the client, and the wall time spanned."""
-    seen = []
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < seconds:
-        seen.append(r.getTimestamp())
-        time.sleep(0.0003)
-    return np.unique(np.array(seen)), time.monotonic() - t0
+class Seen:
+    """Timestamps seen by polling a receive client, each with the host time it was seen at."""
+
+    def __init__(self, r: Any, sim: SimulatedController, seconds: float) -> None:
+        ts, seen_ns = [], []
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < seconds:
+            ts.append(r.getTimestamp())
+            seen_ns.append(time.monotonic_ns())
+            time.sleep(0.0003)
+        self.ts = np.array(ts)
+        self.sent_ns = np.array([sim.host_time_ns(t) for t in ts])
+        """When the controller sent each (cycle k at ``start_time_ns + k * period``)."""
+        self.seen_ns = np.array(seen_ns)
 
 
-def assert_cycle_grid(ts: np.ndarray, period_s: float, wall_s: float) -> None:
+def assert_cycle_grid(seen: Seen, period_s: float) -> None:
+    ts = np.unique(seen.ts)
     steps = ts / period_s
     assert np.all(np.abs(steps - np.round(steps)) < 1e-6), "timestamps off the cycle grid"
     d = np.diff(ts)
     assert d.min() == pytest.approx(period_s, abs=1e-9), "no two consecutive cycles observed"
     assert np.all(np.abs(d / period_s - np.round(d / period_s)) < 1e-6)
-    # The controller clock follows host time (no drift, no skipped time).
-    assert (ts[-1] - ts[0]) / wall_s == pytest.approx(1.0, abs=0.25)
+    # The controller clock follows host time: no sample is seen before the host time it stands
+    # for (a clock running fast or skipping ahead fails; exact whatever the load), nor seconds
+    # after it (a clock running slow or stuck; the bound is generous enough for any load,
+    # where the old 25 % rate window over 0.4 s was not).
+    lag_s = (seen.seen_ns - seen.sent_ns) * 1e-9
+    assert lag_s.min() >= -1e-4  # (the sleep to a cycle's due time rounds to the microsecond)
+    assert lag_s.max() < 2.0
 
 
 def tcp_matrix(pose: list[float]) -> np.ndarray:
@@ -314,11 +330,8 @@ def test_rtde_wire_recipes_and_dashboard() -> None:
 def test_receive_default_recipe_500hz() -> None:
     with controller() as sim, receiver(sim.host) as r:
         assert r.isConnected()
-        ts, wall = sample_timestamps(r, 0.8)
-        assert_cycle_grid(ts, 0.002, wall)
         # timestamp = seconds since the controller started, on the host's monotonic clock.
-        lag = time.monotonic_ns() - sim.host_time_ns(r.getTimestamp())
-        assert 0 <= lag < 100_000_000
+        assert_cycle_grid(Seen(r, sim, 0.8), 0.002)
         assert r.getActualQ() == pytest.approx(HOME.tolist(), abs=1e-15)
         T = kinematics.forward(UR5E, HOME)
         assert pose_error(r.getActualTCPPose(), T) < (1e-12, 1e-12)
@@ -337,10 +350,8 @@ def test_receive_custom_recipes_cb3_and_eseries_side_by_side() -> None:
     ):
         assert cb3.host != eseries.host and cb3.frequency_hz == 125.0
         with receiver(cb3.host, variables) as r3, receiver(eseries.host, variables) as r5:
-            ts3, wall3 = sample_timestamps(r3, 0.8)
-            assert_cycle_grid(ts3, 0.008, wall3)
-            ts5, wall5 = sample_timestamps(r5, 0.4)
-            assert_cycle_grid(ts5, 0.002, wall5)
+            assert_cycle_grid(Seen(r3, cb3, 0.8), 0.008)
+            assert_cycle_grid(Seen(r5, eseries, 0.4), 0.002)
             T = kinematics.forward("UR5", HOME) @ se3.pose_to_matrix(np.array(tcp))
             assert pose_error(r3.getActualTCPPose(), T) < (1e-12, 1e-12)
             assert r5.getActualQ() == pytest.approx(WORK_Q.tolist(), abs=1e-15)
@@ -364,7 +375,10 @@ def test_control_movej_movel_reach_targets_along_their_paths() -> None:
             # moveJ: all joints along one straight line in joint space, leading axis trapezoid.
             q0 = np.array(r.getActualQ())
             q1 = q0 + np.array([0.25, -0.1, 0.15, 0.05, -0.2, 0.4])
-            t_before = time.monotonic_ns()
+            # The truth from the controller's own clock at the command: a controller running
+            # late on a loaded machine starts the move at its (earlier) cycle time, not at the
+            # host time the command was sent.
+            t_before = sim.host_time_ns(sim.state()["timestamp"])
             assert c.moveJ(q1.tolist(), 1.0, 2.0)
             settle(r, sim)
             assert np.abs(np.array(r.getActualQ()) - q1).max() < 1e-6
@@ -385,7 +399,7 @@ def test_control_movej_movel_reach_targets_along_their_paths() -> None:
             T0 = tcp_matrix(p0)
             T1 = T0 @ se3.make(se3.rot_x(0.2), [0.04, 0.03, -0.06])
             p1 = se3.matrix_to_pose(T1).tolist()
-            t_before = time.monotonic_ns()
+            t_before = sim.host_time_ns(sim.state()["timestamp"])
             assert c.moveL(p1, 0.1, 0.5)
             settle(r, sim)
             dp, dr = pose_error(r.getActualTCPPose(), T1)
@@ -438,7 +452,9 @@ def test_async_moves_stops_speedl_and_repeatability() -> None:
                 if prog < 0:
                     break
                 time.sleep(0.01)
-            assert sum(running) > 20  # about 0.7 s of "running" seen
+            # Returned while the 0.7 s move runs: the first poll sees it running. (Counted, not
+            # timed: how many polls fit in 0.7 s depends on the machine's load.)
+            assert running[0] and not running[-1]
             assert not c.getAsyncOperationProgressEx().isAsyncOperationRunning()
             settle(r, sim)
             assert pose_error(r.getActualTCPPose(), tcp_matrix(p1))[0] < 1e-5
@@ -448,21 +464,25 @@ def test_async_moves_stops_speedl_and_repeatability() -> None:
             assert 0 < off < 6e-4
 
             # An async moveJ interrupted by a synchronous stopJ halts short of its target.
+            # Stopped once it has moved 0.05 rad (of 0.6 rad, 1.7 s), watched rather than a
+            # fixed 0.3 s, which a loaded machine stretches.
             q0 = np.array(r.getActualQ())
             assert c.moveJ((q0 + 0.6).tolist(), 0.5, 1.0, True)
-            time.sleep(0.3)
+            wait_for(lambda: r.getActualQ()[0] - q0[0] > 0.05)
+            assert c.getAsyncOperationProgress() >= 0  # still running when stopped
             c.stopJ(2.0)
             assert c.getAsyncOperationProgress() < 0
             settle(r, sim)
             q = np.array(r.getActualQ())
             assert np.abs(np.array(r.getActualQd())).max() == 0.0
-            assert 0.05 < q[0] - q0[0] < 0.5  # stopped part way
+            assert 0.05 < q[0] - q0[0] < 0.59  # stopped part way
             assert np.allclose(q - q0, q[0] - q0[0], atol=1e-9)  # on the joint-space line
 
             # speedL drives the TCP along +x; stopL brings it to rest on that line.
             p0 = r.getActualTCPPose()
             assert c.speedL([0.05, 0.0, 0.0, 0.0, 0.0, 0.0], 0.5)
-            time.sleep(0.5)
+            # Cruising once 12 mm along (accelerating takes 0.1 s and 2.5 mm).
+            wait_for(lambda: r.getActualTCPPose()[0] - p0[0] > 0.012)
             assert r.getActualTCPSpeed()[0] == pytest.approx(0.05, abs=1e-3)
             c.stopL(1.0)
             settle(r, sim)
@@ -485,19 +505,28 @@ def test_protective_stop_aborts_a_move() -> None:
     ):
         q0 = np.array(r.getActualQ())
         target = q0 + np.array([1.0, 0, 0, 0, 0, 0])
-        timer = threading.Timer(0.4, sim.protective_stop)
-        timer.start()
+
+        def stop_when_moving() -> None:
+            # Once the arm has moved 0.03 rad (watched, not a fixed delay a loaded machine
+            # stretches); it would take 2.5 s to the target.
+            deadline = time.monotonic() + 30.0
+            while sim.state()["q"][0] - q0[0] < 0.03 and time.monotonic() < deadline:
+                time.sleep(0.005)
+            sim.protective_stop()
+
+        watcher = threading.Thread(target=stop_when_moving, name="test-pstop")
+        watcher.start()
         try:
-            t = time.monotonic()
-            ok = c.moveJ(target.tolist(), 0.5, 1.0)  # would take 2.5 s
-            elapsed = time.monotonic() - t
+            ok = c.moveJ(target.tolist(), 0.5, 1.0)
         finally:
-            timer.join()
-        assert not ok and elapsed < 1.5
+            watcher.join()
+        # The blocking move returned, failed: the stop was noticed (an arm stopped short never
+        # reaches the target, so a client that missed it would not return at all).
+        assert not ok
         wait_for(lambda: not sim.state()["moving"])
         settle(r, sim)
         q = np.array(r.getActualQ())
-        assert 0.02 < q[0] - q0[0] < 0.5 and np.abs(np.array(r.getActualQd())).max() == 0.0
+        assert 0.03 < q[0] - q0[0] < 0.9 and np.abs(np.array(r.getActualQd())).max() == 0.0
         assert r.isProtectiveStopped() and r.getSafetyMode() == 3
         assert r.getSafetyStatusBits() & 4 and not c.isProgramRunning()
         assert not c.moveJ(q0.tolist(), 0.5, 1.0)  # refused while stopped
@@ -522,29 +551,33 @@ def test_protective_stop_aborts_a_move() -> None:
 def test_dropped_and_stalled_connections() -> None:
     with controller() as sim, receiver(sim.host) as r:
         assert sim.drop_connections() == 1
-        deadline = time.monotonic() + 5
+        deadline = time.monotonic() + 30
         while r.isConnected() and time.monotonic() < deadline:
             time.sleep(0.01)
         assert not r.isConnected()
         assert r.reconnect() and r.isConnected()
         assert sim.state()["rtde_clients"] == 1
 
-        # A short stall: the client keeps its connection; the clock jumps on resumption.
-        before = r.getTimestamp()
+        # A short stall: the client keeps its connection; the clock jumps on resumption (the
+        # controller's clock runs on while it sends nothing, no backlog is replayed). Followed
+        # as it happens, polling until the timestamp jumps (a fixed schedule of sleeps could
+        # land after the stall on a loaded machine); the jump is the stall less what a late
+        # controller was still catching up, so half of it is asserted.
+        settle(r, sim)
         sim.stall_output(1.0)
-        time.sleep(0.15)
-        frozen = r.getTimestamp()
-        time.sleep(0.4)
-        assert r.getTimestamp() == frozen
-        time.sleep(0.8)
-        after = r.getTimestamp()
-        assert r.isConnected() and after - frozen > 0.8 and frozen - before < 0.3
-        ts, wall = sample_timestamps(r, 0.3)
-        assert_cycle_grid(ts, 0.002, wall)
+        frozen = after = r.getTimestamp()
+        deadline = time.monotonic() + 30
+        while after - frozen < 0.25:
+            assert time.monotonic() < deadline, "no stall seen"
+            frozen = after
+            time.sleep(0.001)
+            after = r.getTimestamp()
+        assert r.isConnected() and after - frozen > 0.5
+        assert_cycle_grid(Seen(r, sim, 0.3), 0.002)
 
         # A stall longer than the client's 2.5 s receive timeout: it gives up.
         sim.stall_output(4.0)
-        deadline = time.monotonic() + 6
+        deadline = time.monotonic() + 30
         while r.isConnected() and time.monotonic() < deadline:
             time.sleep(0.05)
         assert not r.isConnected()
