@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 from pydantic import BeforeValidator, Field, field_validator, model_validator
 
 from wristscan.calib import se3
+from wristscan.calib.kinematic_errors import REALISTIC, KinematicErrorSizes
 from wristscan.daemon.config.values import (
     Bool,
     Float,
@@ -40,6 +41,14 @@ __all__ = [
 FloatArray = NDArray[np.float64]
 
 
+_ERROR_KEYS = (
+    "kinematic_error_theta_deg",
+    "kinematic_error_a_m",
+    "kinematic_error_d_m",
+    "kinematic_error_alpha_deg",
+)
+
+
 class SimControllerConfig(StrictModel):
     host: Host = "127.0.0.2"
     """Loopback address the simulated controller listens on (ports 29999, 30003, 30004)."""
@@ -50,7 +59,24 @@ class SimControllerConfig(StrictModel):
         Field(description="PolyScope version"),
     ] = (5, 15, 0, 0)
     serial_number: Str = "20235500001"
+    kinematic_errors: Literal["none", "realistic"] = "none"
+    """``realistic``: the true arm differs from the nominal DH table of ``model`` by seeded
+    per-joint deviations of theta, a, d, alpha (1 sigma 0.01 deg and 0.1 mm unless the
+    ``kinematic_error_*`` keys say otherwise), as a real arm does; ``none``: built to the table."""
+    kinematic_seed: Int = 0
+    kinematic_error_theta_deg: NonNegFloat | None = None
+    kinematic_error_a_m: NonNegFloat | None = None
+    kinematic_error_d_m: NonNegFloat | None = None
+    kinematic_error_alpha_deg: NonNegFloat | None = None
+    factory_calibration: Literal["exact", "partial", "none"] = "exact"
+    """What the controller reports as KinematicsInfo and computes its poses with: the true model,
+    the true model with ``factory_residual`` of each deviation left, or the nominal table."""
+    factory_residual: Annotated[Float, Field(ge=0, le=1)] = 0.15
+    joint_noise_rad: Annotated[Float, Field(ge=0, le=0.01)] = 0.0
+    """Encoder noise on the reported joints (standard deviation)."""
     repeatability_m: Annotated[Float, Field(ge=0, le=0.01)] = 0.0
+    noise_seed: Int | None = None
+    """Seed of the repeatability and the encoder noise (leave out: different every run)."""
     initial_q_rad: Joints6 | None = None
     initial_q_deg: Joints6 | None = None
     """Start joint positions: give them in radians or degrees (not both)."""
@@ -67,6 +93,27 @@ class SimControllerConfig(StrictModel):
         if self.initial_q_rad is not None and self.initial_q_deg is not None:
             raise cross_field("initial_q_deg", "give initial_q_rad or initial_q_deg, not both")
         return self
+
+    @model_validator(mode="after")
+    def _error_sizes(self) -> SimControllerConfig:
+        if self.kinematic_errors == "none":
+            for key in _ERROR_KEYS:
+                if getattr(self, key) is not None:
+                    raise cross_field(key, 'needs kinematic_errors = "realistic"')
+        return self
+
+    def error_sizes(self) -> KinematicErrorSizes | None:
+        """The deviations of the true arm (None: ``kinematic_errors = "none"``)."""
+        if self.kinematic_errors == "none":
+            return None
+        r = REALISTIC
+        t, a, d, al = (getattr(self, key) for key in _ERROR_KEYS)
+        return KinematicErrorSizes(
+            theta_rad=r.theta_rad if t is None else math.radians(t),
+            a_m=r.a_m if a is None else a,
+            d_m=r.d_m if d is None else d,
+            alpha_rad=r.alpha_rad if al is None else math.radians(al),
+        )
 
     @property
     def q0_rad(self) -> tuple[float, ...] | None:

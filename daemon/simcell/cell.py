@@ -51,7 +51,13 @@ def cell_spec(cfg: Config, **sensor_overrides: Any) -> CellSpec:
         model=c.model,
         version=(c.version[0], c.version[1], c.version[2], c.version[3]),
         serial_number=c.serial_number,
+        kinematic_errors=c.error_sizes(),
+        kinematic_seed=c.kinematic_seed,
+        factory_calibration=c.factory_calibration,
+        factory_residual=c.factory_residual,
+        joint_noise_rad=c.joint_noise_rad,
         repeatability_m=c.repeatability_m,
+        noise_seed=c.noise_seed,
         primary_interface=True,  # so use_factory_kinematics works against the simulated arm
     )
     if c.q0_rad is not None:
@@ -72,7 +78,8 @@ def cell_spec(cfg: Config, **sensor_overrides: Any) -> CellSpec:
         "clock_drift_ppm": s.clock_drift_ppm,
         "clock_jitter_ns": s.clock_jitter_s * 1e9,
         "sensor2flange": tuple(sim.truth.sensor2flange_pose),
-        "robot_model": c.model,
+        # The sensor sees the scene from where the flange really is: the arm's true model.
+        "robot_model": controller.true_model if c.kinematic_errors != "none" else c.model,
         "encoder": "table" if s.encoder else "none",
         "intensity": s.intensity,
         "seed": s.seed,

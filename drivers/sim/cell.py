@@ -8,13 +8,16 @@ also when start-up fails half way.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
-from wristscan.calib import se3
+from wristscan.calib import kinematic_errors as kerr
+from wristscan.calib import kinematics, se3
 from wristscan.drivers.sim.scene import Scene, demo_scene
 from wristscan.drivers.sim.sensors import SensorSimConfig, SimulatedSensor
 from wristscan.drivers.sim.table import SimulatedTable, TableSimConfig
@@ -40,6 +43,13 @@ class CellSpec:
 class SimulatedCell:
     def __init__(self, spec: CellSpec | None = None) -> None:
         self.spec = spec or CellSpec()
+        ctrl, sensor = self.spec.controller, self.spec.sensor
+        if ctrl.kinematic_errors is not None and kinematics.get_model(
+            sensor.robot_model
+        ) == kinematics.get_model(ctrl.model):
+            # The sensor sees the scene from where the flange really is: the arm's true model.
+            true: dict[str, Any] = {"robot_model": ctrl.true_model}
+            self.spec = dataclasses.replace(self.spec, sensor=dataclasses.replace(sensor, **true))
         self.scene = self.spec.scene or demo_scene()
         self.robot_ring: TruthRing | None = None
         self.table_ring: TruthRing | None = None
@@ -101,6 +111,31 @@ class SimulatedCell:
             out["sensor"] = {"kind": self.spec.sensor.kind, **self.sensor.endpoint}
         return out
 
+    def _robot_truth(self) -> dict[str, Any]:
+        """The arm's kinematics: true, reported (factory calibration) and nominal models as
+        :func:`~wristscan.calib.kinematic_errors.model_dict` (``model_from_dict`` reads them
+        back), and the sizes of its errors."""
+        c = self.spec.controller
+        e = c.kinematic_errors
+        return {
+            "robot_model_nominal": kerr.model_dict(kinematics.get_model(c.model)),
+            "robot_model_true": kerr.model_dict(c.true_model),
+            "robot_model_reported": kerr.model_dict(c.reported_model),
+            "robot_kinematic_errors": None if e is None else dataclasses.asdict(e),
+            "robot_kinematic_seed": c.kinematic_seed,
+            "robot_factory_calibration": c.factory_calibration if e is not None else "exact",
+            "robot_joint_noise_rad": c.joint_noise_rad,
+        }
+
+    def true_flange2base(self, t_ns: ArrayLike) -> NDArray[np.float64]:
+        """Where the flange really was at host instants ``t_ns`` (``time.monotonic_ns()``, e.g.
+        the exposure instants of profiles): the arm's true model at the true joints of the truth
+        ring, ``(M, 4, 4)``; NaN rotation and position where the ring does not cover an instant."""
+        if self.robot_ring is None:
+            raise RuntimeError("the cell is not running")
+        q = self.robot_ring.sample(np.asarray(t_ns, dtype=np.int64))
+        return kinematics.forward(self.spec.controller.true_model, q)
+
     def truth(self) -> dict[str, Any]:
         """Ground truth in SI units: the values calibration should recover."""
         s = self.spec.sensor
@@ -112,6 +147,7 @@ class SimulatedCell:
             "sensor_clock_offset_ns": s.clock_offset_ns,
             "sensor_clock_drift_ppm": s.clock_drift_ppm,
             "robot_repeatability_m": self.spec.controller.repeatability_m,
+            **self._robot_truth(),
         }
         try:
             ball = self.scene.find("ball")

@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wristscan.calib import se3
+from wristscan.calib.dh import DHParams
 from wristscan.drivers import lpf1
 from wristscan.drivers.sim.laser import LaserModel
 
@@ -84,7 +85,8 @@ class SensorSimConfig:
     sensor_id: int = 1
     sensor2flange: tuple[float, ...] | tuple[tuple[float, ...], ...] = DEFAULT_SENSOR2FLANGE_POSE
     """Ground truth: a UR pose ``(x, y, z, rx, ry, rz)`` or a 4x4 matrix (nested tuples)."""
-    robot_model: str = "UR5e"
+    robot_model: str | DHParams = "UR5e"
+    """The arm's true model: a model name (its nominal table) or its DH parameters."""
     standalone_flange_pose: tuple[float, ...] | None = None
     """Flange pose (UR pose) without a robot ring; None: the sensor 0.1 m above the scene's
     ``"ball"`` primitive (or the base origin), looking down."""

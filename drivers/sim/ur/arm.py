@@ -6,11 +6,16 @@ The controller starts at host time ``start_time_ns`` (``time.monotonic_ns()``); 
 at ``start_time_ns + k * period`` and reports ``timestamp = k * period`` (seconds, exact multiples
 of 2 ms or 8 ms). Internally the arm is simulated on a 1 ms grid (``truth_rate_hz``): each tick
 steps the current motion (:mod:`.motion`) and appends the TRUE joint positions to the
-:class:`~wristscan.drivers.sim.truth.TruthRing` when one is given. ``actual_q`` / ``target_q`` are
+:class:`~wristscan.drivers.sim.truth.TruthRing` when one is given. ``q`` (``target_q``) are
 the controller's own joint positions (its encoders); the true arm differs from them by the
-repeatability model :class:`~.motion.RepeatabilityNoise` (``true_q = actual_q + offset``; zero
-offset with the default ``repeatability_m = 0``). ``actual_TCP_pose`` is ``FK(actual_q) @ tcp``
-as a UR pose. Velocities and accelerations are finite differences over the last tick. The motion
+repeatability model :class:`~.motion.RepeatabilityNoise` (``true_q = q + offset``; zero
+offset with the default ``repeatability_m = 0``), and ``actual_q`` from ``q`` by the encoder
+noise (``joint_noise_rad``). The controller computes with its factory calibration
+(``ControllerConfig.reported_model``): ``actual_TCP_pose`` is ``FK_reported(actual_q) @ tcp`` as
+a UR pose, and its moves are planned with it; the flange really is at ``FK_true(true_q)``
+(``ControllerConfig.true_model``), which differs when the arm has kinematic errors.
+
+Velocities and accelerations are finite differences over the last tick. The motion
 is computed ``motion_lookahead_s`` (4 ms) ahead of the cycle being reported, and the truth ring
 written that far ahead, so that a simulated sensor finds the true pose of an exposure in the ring
 when it exposes; commands therefore take effect that much later, as a controller's own planning
@@ -38,7 +43,7 @@ from numpy.typing import ArrayLike, NDArray
 from wristscan.calib import kinematics, se3
 from wristscan.drivers.sim.truth import TruthRing
 from wristscan.drivers.sim.ur.config import ControllerConfig
-from wristscan.drivers.sim.ur.fastkin import fast_kinematics
+from wristscan.drivers.sim.ur.fastkin import fast_kinematics, rotvec_of
 from wristscan.drivers.sim.ur.motion import (
     CartesianPath,
     JointPath,
@@ -79,8 +84,11 @@ class Arm:
 
     def __init__(self, config: ControllerConfig, ring: TruthRing | None) -> None:
         self.cfg = config
-        self.model = kinematics.get_model(config.model)
+        self.model = config.reported_model
+        """What the controller believes (its factory calibration): its moves and reported poses."""
         self.kin = fast_kinematics(self.model)
+        self.kin_true = fast_kinematics(config.true_model)
+        """How the arm really is: the true flange pose is ``kin_true.forward(q_true)``."""
         self.ring = ring
         self.period_ns = config.period_ns
         self.tick_ns = config.tick_ns
@@ -102,6 +110,11 @@ class Arm:
             config.repeatability_m,
             config.noise_corr_rad,
             config.noise_seed,
+        )
+        self.encoder_noise = (
+            np.random.default_rng(None if config.noise_seed is None else config.noise_seed + 1)
+            if config.joint_noise_rad > 0
+            else None
         )
         self.speed_slider = config.speed_slider
         # motion
@@ -288,6 +301,21 @@ class Arm:
 
     def _tcp_pose_matrix(self, q: FloatArray) -> FloatArray:
         return self.kin.forward(q) @ self.tcp2flange
+
+    def _true_tcp_pose_matrix(self) -> FloatArray:
+        return self.kin_true.forward(self.q_true) @ self.tcp2flange
+
+    def _actual(
+        self, q_t: tuple[float, ...], pose_t: tuple[float, ...]
+    ) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """``(actual_q, actual_TCP_pose)`` of the present cycle, given the noise-free joints and
+        TCP pose: the encoder noise (``joint_noise_rad``) on the joints, and the pose the
+        controller computes from them."""
+        if self.encoder_noise is None:
+            return q_t, pose_t
+        q = self.q + self.encoder_noise.normal(0.0, self.cfg.joint_noise_rad, 6)
+        T = self._tcp_pose_matrix(q)
+        return tuple(q.tolist()), (*T[:3, 3].tolist(), *rotvec_of(T[:3, :3]))
 
     def _ik_tcp(self, tcp2base: FloatArray, seed: FloatArray) -> FloatArray:
         flange2base = tcp2base @ se3.invert(self.tcp2flange)

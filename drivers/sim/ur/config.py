@@ -11,6 +11,7 @@ import math
 import socket
 from dataclasses import dataclass
 
+from wristscan.calib import kinematic_errors as kerr
 from wristscan.calib import kinematics
 from wristscan.drivers.sim.ur.primary import PRIMARY_PORT
 
@@ -50,11 +51,29 @@ class ControllerConfig:
     max_tool_speed_m_s: float = 3.0
     speed_slider: float = 1.0
     """Speed slider fraction (0..1]: scales the time of every motion."""
+    kinematic_errors: kerr.KinematicErrorSizes | None = None
+    """How far the TRUE arm is from ``model``: standard deviations of per-joint deviations of
+    theta, a, d, alpha drawn from ``kinematic_seed``
+    (:func:`wristscan.calib.kinematic_errors.true_model`;
+    :data:`~wristscan.calib.kinematic_errors.REALISTIC` is a real arm's size). None: the arm is
+    built exactly to ``model``. The arm moves by its true model (the truth ring holds its true
+    joints, which the simulated sensor evaluates with :attr:`true_model`)."""
+    kinematic_seed: int = 0
+    factory_calibration: str = "exact"
+    """The calibration the controller believes, reports as KinematicsInfo on the primary
+    interface and computes ``actual_TCP_pose`` and its moves with (:attr:`reported_model`):
+    ``"exact"`` the true model, ``"partial"`` with ``factory_residual`` of every deviation left,
+    ``"none"`` the nominal ``model``."""
+    factory_residual: float = kerr.DEFAULT_RESIDUAL
+    joint_noise_rad: float = 0.0
+    """Encoder noise: standard deviation (rad) of white noise on each reported ``actual_q`` (and
+    so on ``actual_TCP_pose``); ``target_q`` and the true joints have none."""
     repeatability_m: float = 0.0
     """RMS distance (m) between the true and the reported TCP position (UR5e spec: 3e-5)."""
     noise_corr_rad: float = 0.5
     """Joint travel (rad, summed over joints) over which the repeatability offset decorrelates."""
     noise_seed: int | None = None
+    """Seed of the repeatability and the encoder noise (None: different every run)."""
     powered_on: bool = True
     """Start with power on and brakes released (robot mode RUNNING); else POWER_OFF."""
     pstop_unlock_delay_s: float = 5.0
@@ -85,8 +104,14 @@ class ControllerConfig:
             raise ValueError("initial_q and tcp_offset need 6 values each")
         if not 0.0 < self.speed_slider <= 1.0:
             raise ValueError(f"speed_slider must be in (0, 1], got {self.speed_slider}")
-        if self.repeatability_m < 0:
-            raise ValueError("repeatability_m must be >= 0")
+        if self.repeatability_m < 0 or self.joint_noise_rad < 0:
+            raise ValueError("repeatability_m and joint_noise_rad must be >= 0")
+        kerr.factory_model(
+            self.model,
+            kinematics.get_model(self.model),
+            self.factory_calibration,
+            self.factory_residual,
+        )  # raises for an unknown calibration or a residual outside [0, 1]
         if not 0.0 <= self.motion_lookahead_s <= 0.1:
             raise ValueError("motion_lookahead_s must be in [0, 0.1]")
         socket.inet_aton(self.host)  # a dotted IPv4 address
@@ -94,6 +119,22 @@ class ControllerConfig:
             raise ValueError(
                 f"truth_rate_hz {self.truth_rate_hz} does not divide the {self.period_ns} ns cycle"
             )
+
+    @property
+    def true_model(self) -> kinematics.DHParams:
+        """The arm's true kinematics (``model`` itself without ``kinematic_errors``)."""
+        if self.kinematic_errors is None:
+            return kinematics.get_model(self.model)
+        return kerr.true_model(self.model, self.kinematic_errors, self.kinematic_seed)
+
+    @property
+    def reported_model(self) -> kinematics.DHParams:
+        """The factory calibration the controller reports and computes with."""
+        if self.kinematic_errors is None:
+            return kinematics.get_model(self.model)
+        return kerr.factory_model(
+            self.model, self.true_model, self.factory_calibration, self.factory_residual
+        )
 
     @property
     def e_series(self) -> bool:

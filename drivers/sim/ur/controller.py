@@ -186,8 +186,9 @@ class SimulatedController(SimProcess):
         self._request("clear_pstop")
 
     def state(self) -> dict[str, Any]:
-        """Snapshot: ``timestamp``, ``q`` (reported), ``q_true``, ``tcp_pose`` (and
-        ``tcp_pose_true`` from ``q_true``), ``tcp_offset`` (the active TCP), ``moving``,
+        """Snapshot: ``timestamp``, ``q`` (the controller's joints, without encoder noise),
+        ``q_true``, ``tcp_pose`` (the controller's model at ``q``; ``tcp_pose_true``: the true
+        model at ``q_true``), ``tcp_offset`` (the active TCP), ``moving``,
         ``runtime_state``, ``robot_mode``, ``safety_mode``, ``program``, ``rtde_clients``,
         ``skipped_cycles`` (cycles left unpublished because the controller process ran late) ..."""
         return dict(self._request("state"))

@@ -5,7 +5,10 @@ and I/O :mod:`.program`, the emulated ``rtde_control`` script :mod:`.rtde_contro
 cycle, the RTDE output variables and the faults and queries of the parent process. It lives in
 the controller process's event loop (:mod:`.server`).
 
-Other outputs: ``actual_TCP_speed`` = TCP Jacobian x ``actual_qd``; ``actual_tool_accelerometer``
+``actual_q`` and ``actual_TCP_pose`` carry the encoder noise (``joint_noise_rad``), the
+``target_*`` values do not; ``actual_TCP_pose`` is what the controller computes with its factory
+calibration (:attr:`~.config.ControllerConfig.reported_model`). Other outputs:
+``actual_TCP_speed`` = TCP Jacobian x ``actual_qd``; ``actual_tool_accelerometer``
 is gravity in tool coordinates; currents, forces, ``elbow_position`` and the like read zero.
 """
 
@@ -98,6 +101,7 @@ class Controller(RtdeControlHost):
             twist = (0.0,) * 6
         pose_t = self._pose_cache
         q_t, qd_t = tuple(q.tolist()), tuple(self.qd.tolist())
+        actual_q, actual_pose = self._actual(q_t, pose_t)
         powered = self.robot_mode >= 4
         pstop = self.safety_mode == SAFETY_PROTECTIVE_STOP
         joint_mode = (
@@ -111,11 +115,11 @@ class Controller(RtdeControlHost):
         v: dict[str, Any] = {
             "timestamp": self.cycle * dt,
             "target_q": q_t,
-            "actual_q": q_t,
+            "actual_q": actual_q,
             "target_qd": qd_t,
             "actual_qd": qd_t,
             "target_qdd": tuple(self.qdd.tolist()),
-            "actual_TCP_pose": pose_t,
+            "actual_TCP_pose": actual_pose,
             "target_TCP_pose": pose_t,
             "actual_TCP_speed": twist,
             "target_TCP_speed": twist,
@@ -186,7 +190,7 @@ class Controller(RtdeControlHost):
             "q_true": self.q_true.tolist(),
             "qd": self.qd.tolist(),
             "tcp_pose": se3.matrix_to_pose(self._tcp_pose_matrix(self.q)).tolist(),
-            "tcp_pose_true": se3.matrix_to_pose(self._tcp_pose_matrix(self.q_true)).tolist(),
+            "tcp_pose_true": se3.matrix_to_pose(self._true_tcp_pose_matrix()).tolist(),
             "tcp_offset": list(self._tcp_offset_pose),
             "moving": self._moving() or not self._caught_up(),
             "runtime_state": self.runtime_state,

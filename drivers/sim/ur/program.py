@@ -67,7 +67,7 @@ class ProgramHost(Arm):
         v = config.version
         self.version: tuple[int, int, int, int] = (int(v[0]), int(v[1]), int(v[2]), int(v[3]))
         self.serial_number = config.serial_number
-        self.model_name = self.model.name
+        self.model_name = kinematics.get_model(config.model).name  # the nominal model's name
         self.robot_mode = ROBOT_MODE_RUNNING if config.powered_on else ROBOT_MODE_POWER_OFF
         self.safety_mode = SAFETY_NORMAL
         self.pstop_ns = 0
