@@ -35,8 +35,11 @@ The faults and their seams (see docs/mutations.md):
   fitted). Seam: ``wristscan.daemon.sync.envelope.support_slope`` answers 0 while a sensor clock's
   ``ClockMapper._refit`` runs (``wristscan.daemon.sync.clockmap``); robot and table clocks are
   left alone.
-* ``kinematics`` (pending): the robot's nominal kinematics instead of its calibrated model, once
-  the real-world kinematic calibration exists.
+* ``kinematics``: the robot's nominal kinematics instead of its calibrated model (today the
+  factory calibration the controller reports in KinematicsInfo; the kinematic identification of
+  a later issue will add its own). Seam: ``wristscan.daemon.devices.robot_model`` (what the
+  daemon and the procedures pair with) answers the configured model name whenever it would have
+  answered a calibrated model.
 """
 
 from __future__ import annotations
@@ -198,6 +201,21 @@ def _patch_nearest(mod: Any, size: float) -> None:
     cls.__init__ = init
 
 
+def _patch_robot_model(mod: Any, size: float) -> None:
+    del size
+    original = mod.robot_model
+
+    def robot_model(cfg: Any, devices: Any) -> Any:
+        model = original(cfg, devices)
+        if not isinstance(model, str):
+            # The calibrated model was in force: pair with the nominal table instead.
+            _note_use("nominal kinematics instead of the calibrated model")
+            return cfg.robot.model
+        return model
+
+    mod.robot_model = robot_model
+
+
 _zero_slope = threading.local()
 
 
@@ -288,8 +306,7 @@ FAULTS: dict[str, Fault] = {
             "the robot's nominal kinematics instead of its calibrated model",
             0.0,
             "",
-            {},
-            pending="needs the real-world kinematic calibration (a later issue)",
+            {"wristscan.daemon.devices": _patch_robot_model},
         ),
     )
 }

@@ -81,11 +81,17 @@ motion (0.05 mm each way), and pairing with the nearest robot sample (500 Hz sta
 profiles: +-0.5 ms alternating) adds about 25 um RMS to the distances from the true sphere."""
 SWEEP_ACCEL_M_S2 = 1.0
 """Full speed 5 mm into the sweep, before the line reaches the ball (17 mm in)."""
-CENTRE_TOL_M = 15e-6
+CENTRE_TOL_M = 30e-6
 """Each sweep's fitted centre from the true one (a sphere fit of ~10^5 points is good to a few
-um; 15 um is 0.15 ms of timing error at 100 mm/s, 1.5x the synchroniser's 0.1 ms target)."""
-TIMING_TOL_S = 0.15e-3
+um; 30 um is 0.3 ms of timing error at 100 mm/s, 3x the synchroniser's 0.1 ms target: on an
+idle machine the sweeps land within 10 um, on a 2-core machine loaded to 8 runnable processes
+one came out 23 um off, 0.17 ms)."""
+TIMING_TOL_S = 0.3e-3
 """The timing error the forward/backward disagreement along the motion implies (both ways)."""
+CLOCK_SPAN_S = 5.0
+"""How long the daemon runs before the sweeps, so that the sensor clock's fit spans several
+seconds of its -100 ppm drift: ignored, it would cost 0.5 ms by then (caught), where right
+after the start it costs only 0.2-0.3 ms."""
 
 
 def _noise_m(cfg: Any) -> float:
@@ -147,6 +153,11 @@ def test_daemon_end_to_end(tmp_path: Path) -> None:
             # on the oldest receipts and be 0.1 ms late per second of running (a faster clock
             # rests it on the newest ones, where ignoring the drift costs nothing).
             "sim.sensor": {"clock_drift_ppm": -100.0},
+            # An arm built as a real one is (its DH parameters off by ~0.1 mm / 0.01 deg, the
+            # flange 0.3 mm from where the nominal table puts it) whose factory calibration the
+            # controller reports: the daemon must pair with that model, not the nominal one.
+            "sim.controller": {"kinematic_errors": "realistic", "factory_calibration": "exact"},
+            "robot": {"use_factory_kinematics": True},
         }
     )
     cfg_path = tmp_path / "cell.toml"
@@ -199,7 +210,7 @@ def test_daemon_end_to_end(tmp_path: Path) -> None:
         )
         assert subscriber.stdout is not None and subscriber.stdin is not None
         assert subscriber.stdout.readline().strip() == "ready"
-        time.sleep(0.5)
+        time.sleep(CLOCK_SPAN_S)
 
         control = rtde_control.RTDEControlInterface(cfg.robot.host)
         try:
