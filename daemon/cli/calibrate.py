@@ -1,7 +1,8 @@
 """``wristscan calibrate ...``: calibration procedures run at the cell.
 
-``calibrate_app`` is the typer group: ``sensor`` (sensor2flange with a tooling ball) is here,
-``table`` (the rotary-table axis) and ``latency`` (the sensor latency) are in
+``calibrate_app`` is the typer group: ``sensor`` (sensor2flange with a tooling ball) and
+``import`` (sensor2flange from a stop-and-go data set on disk, docs/calibration_import.md) are
+here, ``table`` (the rotary-table axis) and ``latency`` (the sensor latency) are in
 :mod:`._calibrate_table`.
 
 Exit codes of every procedure: 0 done, 1 aborted or failed (nothing written; the calibration in
@@ -332,3 +333,139 @@ def _print_result(result: SensorCalibrationResult, out: Path, report: Path | Non
 # The procedures of _calibrate_table, after sensor: ``calibrate --help`` lists them in this order.
 calibrate_app.command("table")(table)
 calibrate_app.command("latency")(latency)
+
+
+# ------------------------------------------------------------------------------ calibrate import
+
+
+_FolderArg = Annotated[
+    Path, typer.Argument(help="Data set folder: poses.csv and profiles/<pose>.csv.")
+]
+_RadiusOpt = Annotated[
+    str, typer.Option("--ball-radius", help="Ball radius with its unit: 40mm, 0.04m.")
+]
+_PosesOpt = Annotated[
+    str,
+    typer.Option(
+        "--poses",
+        help="Pose convention of poses.csv: ur-rotvec, fanuc-xyzwpr, kuka-abc, "
+        "abb-quaternion or matrix.",
+    ),
+]
+_UnitsOpt = Annotated[
+    str, typer.Option("--units", help="Units of positions and profile points: mm or m.")
+]
+_ImportOutOpt = Annotated[
+    Path | None,
+    typer.Option("--out", "-o", help="Calibration file (default: ./sensor2flange.json)."),
+]
+_IdentityOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--config", "-c", help="Cell configuration: the robot and sensor the file is for."
+    ),
+]
+_RobotSigmaOpt = Annotated[
+    float,
+    typer.Option(
+        "--robot-sigma-mm",
+        min=0.0,
+        help="Per-axis flange position error of a pose from the data sheet (the floor of the "
+        "one estimated from the residuals).",
+    ),
+]
+_SideOpt = Annotated[
+    str,
+    typer.Option(
+        "--ball-side", help="Side of the laser plane the ball centre is on: auto, +x, -x."
+    ),
+]
+
+
+@calibrate_app.command("import")
+def import_(
+    folder: _FolderArg,
+    ball_radius: _RadiusOpt,
+    poses: _PosesOpt,
+    units: _UnitsOpt = "mm",
+    out: _ImportOutOpt = None,
+    report: _ReportOpt = None,
+    config: _IdentityOpt = None,
+    robot_sigma_mm: _RobotSigmaOpt = 0.02,
+    side: _SideOpt = "auto",
+) -> None:
+    """Calibrate sensor2flange from a stop-and-go data set on disk (one profile per pose).
+
+    Reads FOLDER/poses.csv (a header, then pose,x,y,z and the orientation columns of
+    --poses) and FOLDER/profiles/<pose>.csv (y,z and an optional valid column), solves in
+    closed form (no initial guess), chooses the side of the laser plane the ball is on, refines
+    jointly on every point, and writes the same calibration file and report as `calibrate
+    sensor`. See docs/calibration_import.md.
+    """
+    from wristscan.calib import pose_conventions as pc
+    from wristscan.daemon.calibrate import imported
+
+    if poses not in pc.CONVENTIONS:
+        fail(f"--poses: {poses!r} is not one of {', '.join(pc.CONVENTIONS)}", EXIT_USAGE)
+    if units not in imported.UNITS:
+        fail(f"--units: {units!r} is not mm or m", EXIT_USAGE)
+    sides: dict[str, Any] = {"auto": "auto", "+x": 1, "-x": -1}
+    if side not in sides:
+        fail(f"--ball-side: {side!r} is not auto, +x or -x", EXIT_USAGE)
+    try:
+        radius_m = imported.parse_length(ball_radius, units)
+    except ValueError as exc:
+        fail(f"--ball-radius: {exc}", EXIT_USAGE)
+    target = out or Path("sensor2flange.json")
+    check_out_folder(target, "--out")
+    rep = report_path(target, report)
+    robot = sensor_id = None
+    if config is not None:
+        from wristscan.daemon.io.calibfile import identities
+
+        robot, sensor_id = identities(load_config_or_exit(config))
+    try:
+        result = imported.run(
+            folder, poses, radius_m, units=units, out=target, report=rep, robot=robot,
+            sensor=sensor_id, robot_sigma_m=robot_sigma_mm * 1e-3, side=sides[side],
+        )  # fmt: skip
+    except imported.DatasetError as exc:
+        fail(f"{exc}; nothing was written", EXIT_USAGE)
+    except imported.ImportFailed as exc:
+        fail(f"calibration failed: {exc}; nothing was written")
+    except OSError as exc:
+        fail(f"cannot write the result: {exc}")
+    _print_import(result, target, rep)
+
+
+def _print_import(result: Any, out: Path, report: Path) -> None:
+    import math
+
+    from wristscan.calib import se3
+    from wristscan.daemon.io.urpose import ur_pose_text
+
+    j = result.joint
+    pose = se3.matrix_to_pose(j.sensor2flange)
+    st = j.sigma_translation_m * 1e3
+    echo = typer.echo
+    echo(f"sensor2flange  {ur_pose_text(pose)}")
+    echo(
+        f"  translation   x {pose[0] * 1e3:.4f}  y {pose[1] * 1e3:.4f}  z {pose[2] * 1e3:.4f} mm"
+        f"   (1 sigma {st[0]:.4f} {st[1]:.4f} {st[2]:.4f} mm)"
+    )
+    if result.jackknife is not None:
+        jt = result.jackknife.sigma_translation_m * 1e3
+        echo(f"  jackknife     1 sigma over poses {jt[0]:.4f} {jt[1]:.4f} {jt[2]:.4f} mm")
+    side = {1: "+x", -1: "-x", 0: "mixed"}[result.solution.side]
+    echo(
+        f"  residual RMS  {j.rms * 1e6:.1f} um, {len(result.dataset.names)} poses, "
+        f"{j.n_points} points, ball side {side}, condition {j.condition:.1f}"
+    )
+    ps = float(getattr(j, "point_sigma_m", math.nan))
+    if math.isfinite(ps):
+        echo(f"  point error   up to {ps * 1e3:.4f} mm (1 sigma) from the calibration")
+    for n in result.notes:
+        echo(f"  note: {n}")
+    echo(f"calibration file {out}")
+    if report.exists():
+        echo(f"report           {report}")
