@@ -1,9 +1,11 @@
-"""``wristscan record``: save the daemon's published clouds to a PLY or NPZ file.
+"""``wristscan record``: save the daemon's published clouds to a file whose extension names the
+format (:mod:`wristscan.daemon.io.cloudfile`): PLY, NPZ, MCAP (extra ``mcap``: ROS 2 messages
+for Foxglove) or E57 (extra ``e57``: one scan, for CloudCompare).
 
-PLY is streamed to disk (a long recording never sits in memory) and renamed into place when the
-recording ends; NPZ keeps the batch structure (sequence numbers, times, profile indices) and is
-assembled in memory. Either way the file appears complete under its name or not at all, also
-when the recording is stopped with Ctrl-C or SIGTERM.
+PLY, MCAP and E57 are streamed to disk (a long recording never sits in memory) and renamed into
+place when the recording ends; NPZ keeps the batch structure (sequence numbers, times, profile
+indices) and is assembled in memory. Either way the file appears complete under its name or not
+at all, also when the recording is stopped with Ctrl-C or SIGTERM.
 """
 
 from __future__ import annotations
@@ -36,8 +38,8 @@ if TYPE_CHECKING:
 
     from wristscan.daemon.cloud.client import CloudClient
     from wristscan.daemon.cloud.wsc1 import Cloud
+    from wristscan.daemon.io.cloudfile import BatchSink
     from wristscan.daemon.io.ply import PlyStreamWriter
-SUFFIXES = (".ply", ".npz")
 RING_CAPACITY = 64
 """Batches the subscriber holds while the file is being written (then the oldest are lost)."""
 
@@ -69,31 +71,51 @@ class _Tally:
         self.t_last_ns = cloud.t_last_ns
 
 
+def _point_times_s(cloud: Cloud, take: int, t0_ns: int) -> NDArray[np.float64]:
+    """Exposure time of each point (s since ``t0_ns``): its profile's place between the first
+    and last profile of the batch when the batch says which profile a point is from, else the
+    batch's first profile."""
+    import numpy as np
+
+    t = np.full(take, float(cloud.t_first_ns - t0_ns) * 1e-9)
+    if cloud.profile_index is not None and cloud.n_profiles > 1:
+        span = float(cloud.t_last_ns - cloud.t_first_ns) * 1e-9
+        t += span * cloud.profile_index[:take] / (cloud.n_profiles - 1)
+    return t
+
+
 class _PlySink:
     """Streams points into a :class:`PlyStreamWriter` opened at the first batch (which decides
-    whether the file carries intensity)."""
+    whether the file carries intensity); with ``time`` each point carries ``scalar_time``."""
 
-    def __init__(self, path: Path, ascii: bool, prefix: str) -> None:
+    def __init__(self, path: Path, ascii: bool, prefix: str, time: bool = False) -> None:
         self.path = path
         self.ascii = ascii
         self.prefix = prefix
+        self.time = time
+        self.t0_ns = 0
         self.writer: PlyStreamWriter | None = None
         self.intensity_mismatch = 0
 
     def _open(self, has_intensity: bool) -> PlyStreamWriter:
         from wristscan.daemon.io.ply import PlyStreamWriter
 
+        comments = ["wristscan record", f"source {self.prefix}/cloud", "units metres"]
+        if self.time:
+            comments.append(f"scalar_time seconds since t0_ns {self.t0_ns}")
         return PlyStreamWriter(
             self.path,
             has_intensity=has_intensity,
             binary=not self.ascii,
-            comments=["wristscan record", f"source {self.prefix}/cloud", "units metres"],
+            comments=comments,
+            scalars=("scalar_time",) if self.time else (),
         )
 
     def add(self, cloud: Cloud, take: int) -> None:
         import numpy as np
 
         if self.writer is None:
+            self.t0_ns = cloud.t_first_ns
             self.writer = self._open(cloud.intensity is not None)
         intensity = None
         if self.writer.has_intensity:
@@ -104,7 +126,8 @@ class _PlySink:
                 intensity = cloud.intensity[:take]
         elif cloud.intensity is not None:
             self.intensity_mismatch += 1
-        self.writer.write(cloud.xyz[:take], intensity=intensity)
+        scalars = {"scalar_time": _point_times_s(cloud, take, self.t0_ns)} if self.time else None
+        self.writer.write(cloud.xyz[:take], intensity=intensity, scalars=scalars)
 
     def close(self, tally: _Tally) -> Path:
         writer = self.writer if self.writer is not None else self._open(False)
@@ -181,11 +204,60 @@ class _NpzSink:
         self.xyz.clear()
 
 
-def _check_out(out: Path, ascii: bool) -> None:
-    if out.suffix.lower() not in SUFFIXES:
-        fail(f"--out must end in .ply or .npz, got {str(out)!r}", EXIT_USAGE)
+class _BatchSinkAdapter:
+    """A :class:`BatchSink` (MCAP, E57) fed with received clouds."""
+
+    def __init__(self, sink: BatchSink) -> None:
+        self.sink = sink
+
+    @property
+    def intensity_mismatch(self) -> int:
+        return self.sink.intensity_mismatch
+
+    def add(self, cloud: Cloud, take: int) -> None:
+        from wristscan.daemon.io.cloudfile import Batch
+
+        inten = None if cloud.intensity is None else cloud.intensity[:take]
+        batch = Batch(cloud.xyz[:take], cloud.t_first_ns, cloud.t_last_ns, cloud.frame_id, inten)
+        self.sink.add_batch(batch)
+
+    def close(self, tally: _Tally) -> Path:
+        return self.sink.finish()
+
+    def abort(self) -> None:
+        self.sink.abort()
+
+
+_Sink = _PlySink | _NpzSink | _BatchSinkAdapter
+
+
+def _open_sink(out: Path, ascii: bool, prefix: str, time: bool) -> _Sink:
+    from wristscan.daemon.io.cloudfile import cloud_format, open_batch_sink
+
+    fmt = cloud_format(out)
+    if fmt == "ply":
+        return _PlySink(out, ascii, prefix, time)
+    if fmt == "npz":
+        return _NpzSink(out)
+    return _BatchSinkAdapter(open_batch_sink(out, fmt, f"{prefix}/cloud"))
+
+
+def _check_out(out: Path, ascii: bool, point_time: bool) -> None:
+    from wristscan.daemon.io.cloudfile import FORMATS, CloudFormatError, cloud_format
+
+    if out.suffix.lower() not in FORMATS:
+        fail(
+            f"--out must end in .ply or .npz (or .mcap, .e57 with their extras), got {str(out)!r}",
+            EXIT_USAGE,
+        )
+    try:
+        cloud_format(out)
+    except CloudFormatError as exc:
+        fail(f"--out: {exc}", EXIT_USAGE)
     if ascii and out.suffix.lower() != ".ply":
         fail("--ascii applies to .ply output only", EXIT_USAGE)
+    if point_time and out.suffix.lower() != ".ply":
+        fail("--time applies to .ply output only (MCAP and E57 carry the batch times)", EXIT_USAGE)
     if out.is_dir():
         fail(f"--out {str(out)!r} is a folder", EXIT_USAGE)
     if not out.parent.is_dir():
@@ -196,7 +268,10 @@ def record(
     out: Annotated[
         Path,
         typer.Option(
-            "--out", "-o", help="Output file: .ply (streamed to disk) or .npz.", show_default=False
+            "--out",
+            "-o",
+            help="Output file; the extension names the format: .ply, .npz, .mcap, .e57.",
+            show_default=False,
         ),
     ],
     config: ConfigOpt = None,
@@ -211,6 +286,14 @@ def record(
         int | None, typer.Option("--points", "-n", min=1, help="Stop after this many points.")
     ] = None,
     ascii: Annotated[bool, typer.Option("--ascii", help="Write ASCII PLY (large, slow).")] = False,
+    point_time: Annotated[
+        bool,
+        typer.Option(
+            "--time",
+            help="PLY: each point's exposure time as scalar_time (s since the first batch), "
+            "which CloudCompare shows as the scalar field 'time'.",
+        ),
+    ] = False,
     timeout: TimeoutOpt = 5.0,
     progress: Annotated[
         bool | None,
@@ -222,7 +305,7 @@ def record(
     ] = None,
 ) -> None:
     """Record the daemon's point clouds to a file until --duration, --points or Ctrl-C."""
-    _check_out(out, ascii)
+    _check_out(out, ascii, point_time)
     if duration is not None and duration <= 0:
         fail("--duration must be > 0 seconds", EXIT_USAGE)
     target = resolve_target(config, prefix, connect, mode)
@@ -232,11 +315,7 @@ def record(
             if not wait_alive(client, timeout, stop):
                 no_answer(target, timeout, stop)
             typer.echo(f"recording {target.prefix}/cloud to {out} (Ctrl-C to stop)", err=True)
-            sink: _PlySink | _NpzSink = (
-                _PlySink(out, ascii, target.prefix)
-                if out.suffix.lower() == ".ply"
-                else _NpzSink(out)
-            )
+            sink = _open_sink(out, ascii, target.prefix, point_time)
             tally = _Tally()
             bar = progress_bar(
                 total=points,
@@ -263,7 +342,7 @@ def record(
 
 def _receive(
     client: CloudClient,
-    sink: _PlySink | _NpzSink,
+    sink: _Sink,
     tally: _Tally,
     bar: Any,
     stop: threading.Event,
@@ -302,7 +381,7 @@ def _summary(
     malformed: int,
     elapsed: float,
     reason: str,
-    sink: _PlySink | _NpzSink,
+    sink: _Sink,
 ) -> None:
     lost = f"{tally.lost} batches (seq gaps)"
     if overflow:

@@ -57,7 +57,13 @@ def scan(
         "--joints-deg",
         help="Dry run from these joints (deg) instead of reading the robot.",
     ),
-    out: Path = typer.Option(Path("scan"), "--out", "-o", help="Output folder."),
+    out: Path = typer.Option(
+        Path("scan"),
+        "--out",
+        "-o",
+        help="Output folder; or NAME.e57 / NAME.mcap: the scan as that file (one scan or cloud "
+        "per pass), and the other outputs in the folder NAME.",
+    ),
     voxel_mm: float = typer.Option(
         0.25, "--voxel-mm", min=0.0, help="Voxel of the written clouds (mm); 0 keeps all points."
     ),
@@ -88,6 +94,7 @@ def scan(
     if dry_run or joints_deg is not None:
         _dry_run(cfg, scan_plan, joints_deg)
         return
+    out, cloud_file = _split_out(out)
     if surface:
         import importlib.util
 
@@ -98,7 +105,33 @@ def scan(
                 EXIT_USAGE,
             )
     confirm_motion(cfg, yes, "wristscan scan")
-    _run(cfg, scan_plan, out, voxel_mm, icp, max_correction_mm, max_correction_deg, surface)
+    _run(
+        cfg,
+        scan_plan,
+        out,
+        voxel_mm,
+        icp,
+        max_correction_mm,
+        max_correction_deg,
+        surface,
+        cloud_file,
+    )
+
+
+def _split_out(out: Path) -> tuple[Path, Path | None]:
+    """The output folder and the scan file: ``NAME.e57`` or ``NAME.mcap`` is that file and the
+    folder ``NAME``; anything else is the folder. Fails (nothing moved) on a cloud extension
+    the scan does not write or a missing extra."""
+    from wristscan.daemon.io.cloudfile import FORMATS, CloudFormatError, cloud_format
+    from wristscan.daemon.scan.output import SCAN_FILE_FORMATS
+
+    if out.suffix.lower() not in FORMATS:
+        return out, None
+    try:
+        cloud_format(out, allowed=SCAN_FILE_FORMATS)
+    except CloudFormatError as exc:
+        fail(f"--out: {exc} (or a folder name) (nothing moved)", EXIT_USAGE)
+    return out.with_suffix(""), out
 
 
 def _dry_run(cfg: object, scan_plan: object, joints_deg: tuple[float, ...] | None) -> None:
@@ -136,6 +169,7 @@ def _run(
     max_mm: float,
     max_deg: float,
     surface: bool,
+    cloud_file: Path | None = None,
 ) -> None:
 
     from wristscan.daemon.config import Config
@@ -181,6 +215,11 @@ def _run(
         fail(str(exc), EXIT_FAILED)
     except DriverError as exc:
         fail(f"device error: {exc}", EXIT_FAILED)
+    if cloud_file is not None:
+        from wristscan.daemon.scan.output import write_scan_file
+
+        files = (result.clouds, result.merge, result.recorded, result.frame, result.calibration)
+        result.files.append(write_scan_file(cloud_file, *files))
     typer.echo("")
     for line in report_lines(result.report):
         typer.echo(line)

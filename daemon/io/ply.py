@@ -14,6 +14,8 @@ Layout (one ``vertex`` element, no faces)::
     property float ny
     property float nz
     property uchar intensity (optional; or ``float`` in [0, 1], see below)
+    property ushort scalar_pass   (optional scalar fields, see below)
+    property double scalar_time
     end_header
 
 Coordinates are float32 metres. Property names follow what viewers map without asking:
@@ -22,6 +24,11 @@ CloudCompare (any numeric type). MeshLab's importer (vcglib) only takes ``intens
 a ``float`` (read as a grey shade in [0, 1]) and silently ignores a ``uchar`` one, so
 ``intensity_float=True`` writes ``u8 / 255`` as float32 for MeshLab users at 4 bytes a point;
 the default keeps the exact 1-byte value.
+
+Scalar fields: any other per-point value, named ``scalar_<what>`` so that CloudCompare shows it
+as the scalar field ``<what>`` (it writes its own fields so). wristscan writes ``scalar_pass``
+(``ushort``: the pass of a scan, from 1) and ``scalar_time`` (``double`` seconds since the time
+a comment gives); another name is stored as ``float`` unless :data:`SCALAR_TYPES` says.
 
 Every file appears under its final name complete or not at all: data goes to a temporary file
 in the same folder, is flushed and fsynced, then ``os.replace``-d over the final name.
@@ -34,7 +41,7 @@ import logging
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any, Self
@@ -45,6 +52,7 @@ from numpy.typing import ArrayLike, NDArray
 from wristscan.daemon.io.atomic import atomic_writer
 
 __all__ = [
+    "SCALAR_TYPES",
     "PlyElement",
     "PlyError",
     "PlyHeader",
@@ -75,6 +83,9 @@ _PLY_TYPES: dict[str, str] = {
     "double": "f8",
     "float64": "f8",
 }
+_TYPE_NAMES = {"f4": "float", "f8": "double", "u1": "uchar", "u2": "ushort", "u4": "uint"}
+SCALAR_TYPES: dict[str, str] = {"scalar_pass": "<u2", "scalar_time": "<f8"}
+"""Types of the scalar fields wristscan writes; other scalar fields are float32."""
 _FORMATS = {"ascii": "", "binary_little_endian": "<", "binary_big_endian": ">"}
 _ASCII_CHUNK = 65536
 """Rows formatted per string operation in ASCII output (bounds the temporary Python objects)."""
@@ -115,23 +126,28 @@ def _check_comment(text: str) -> str:
     return text
 
 
-def _vertex_dtype(has_normals: bool, has_intensity: bool, intensity_float: bool) -> np.dtype:
+def _vertex_dtype(
+    has_normals: bool, has_intensity: bool, intensity_float: bool, scalars: Sequence[str] = ()
+) -> np.dtype:
     fields: list[tuple[str, str]] = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
     if has_normals:
         fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
     if has_intensity:
         fields.append(("intensity", "<f4" if intensity_float else "u1"))
+    for name in scalars:
+        if not name.isidentifier() or name in ("x", "y", "z", "nx", "ny", "nz", "intensity"):
+            raise ValueError(f"bad scalar field name {name!r}")
+        fields.append((name, SCALAR_TYPES.get(name, "<f4")))
     return np.dtype(fields)
 
 
 def _header(n: int, dtype: np.dtype, ascii: bool, comments: Sequence[str]) -> bytes:
-    names = {"f4": "float", "u1": "uchar"}
     lines = ["ply", f"format {'ascii' if ascii else 'binary_little_endian'} 1.0"]
     lines += [f"comment {_check_comment(c)}" for c in comments]
     lines.append(f"element vertex {n}")
     assert dtype.fields is not None
     for name, (ftype, *_) in dtype.fields.items():
-        lines.append(f"property {names[ftype.str[1:]]} {name}")
+        lines.append(f"property {_TYPE_NAMES[ftype.str[1:]]} {name}")
     lines.append("end_header")
     return ("\n".join(lines) + "\n").encode("ascii")
 
@@ -141,6 +157,7 @@ def _records(
     normals: ArrayLike | None,
     intensity: ArrayLike | None,
     dtype: np.dtype,
+    scalars: Mapping[str, ArrayLike] | None = None,
 ) -> NDArray[Any]:
     pts = np.asarray(xyz)
     if pts.ndim != 2 or pts.shape[1] != 3:
@@ -172,7 +189,19 @@ def _records(
             rec["intensity"] = inten
     elif intensity is not None:
         raise ValueError("this file has no intensity")
+    _fill_scalars(rec, scalars or {})
     return rec
+
+
+def _fill_scalars(rec: NDArray[Any], scalars: Mapping[str, ArrayLike]) -> None:
+    assert rec.dtype.names is not None
+    declared = rec.dtype.names[rec.dtype.names.index("z") + 1 :]
+    declared = tuple(nm for nm in declared if nm not in ("nx", "ny", "nz", "intensity"))
+    if set(scalars) != set(declared):
+        raise ValueError(f"this file has the scalar fields {declared}, got {tuple(scalars)}")
+    for name, values in scalars.items():
+        v = np.broadcast_to(np.asarray(values), (rec.shape[0],))
+        rec[name] = v
 
 
 def _ascii_rows(rec: NDArray[Any]) -> Iterator[bytes]:
@@ -180,7 +209,11 @@ def _ascii_rows(rec: NDArray[Any]) -> Iterator[bytes]:
     ``%.9g`` round-trips float32 exactly."""
     assert rec.dtype.names is not None
     names = rec.dtype.names
-    row = " ".join("%d" if rec.dtype[nm].kind == "u" else "%.9g" for nm in names) + "\n"
+    fmt = {"u": "%d", "f": "%.9g"}
+    row = " ".join(
+        "%.17g" if rec.dtype[nm].itemsize == 8 else fmt[rec.dtype[nm].kind] for nm in names
+    )
+    row += "\n"
     for start in range(0, rec.shape[0], _ASCII_CHUNK):
         block = rec[start : start + _ASCII_CHUNK]
         cols = np.empty((block.shape[0], len(names)), dtype=np.float64)
@@ -205,12 +238,15 @@ def write_ply(
     binary: bool = True,
     comments: Sequence[str] = (),
     intensity_float: bool = False,
+    scalars: Mapping[str, ArrayLike] | None = None,
 ) -> None:
     """Write a point cloud atomically. ``xyz`` (N, 3) metres and ``normals`` (N, 3) are stored as
     float32; ``intensity`` (N,) uint8 as ``uchar intensity`` (or ``float`` in [0, 1] with
-    ``intensity_float``). ``binary=False`` writes ASCII."""
-    dtype = _vertex_dtype(normals is not None, intensity is not None, intensity_float)
-    rec = _records(xyz, normals, intensity, dtype)
+    ``intensity_float``); ``scalars`` maps scalar field names to (N,) values (or one value for
+    every point). ``binary=False`` writes ASCII."""
+    names = tuple(scalars or {})
+    dtype = _vertex_dtype(normals is not None, intensity is not None, intensity_float, names)
+    rec = _records(xyz, normals, intensity, dtype, scalars)
     header = _header(rec.shape[0], dtype, not binary, comments)
     with atomic_writer(path) as f:
         f.write(header)
@@ -234,11 +270,12 @@ class PlyStreamWriter:
         binary: bool = True,
         comments: Sequence[str] = (),
         intensity_float: bool = False,
+        scalars: Sequence[str] = (),
     ) -> None:
         self.path = Path(path)
         self.binary = binary
         self.comments: list[str] = [_check_comment(c) for c in comments]
-        self.dtype = _vertex_dtype(has_normals, has_intensity, intensity_float)
+        self.dtype = _vertex_dtype(has_normals, has_intensity, intensity_float, scalars)
         self.n_points = 0
         self._closed = False
         fd, body = tempfile.mkstemp(
@@ -264,11 +301,13 @@ class PlyStreamWriter:
         xyz: ArrayLike,
         intensity: ArrayLike | None = None,
         normals: ArrayLike | None = None,
+        scalars: Mapping[str, ArrayLike] | None = None,
     ) -> None:
-        """Append ``xyz`` (N, 3) metres with the optional per-point blocks this file declares."""
+        """Append ``xyz`` (N, 3) metres with the optional per-point blocks this file declares
+        (``scalars``: one (N,) array, or one value, per scalar field)."""
         if self._closed:
             raise ValueError(f"{self.path}: writer is closed")
-        rec = _records(xyz, normals, intensity, self.dtype)
+        rec = _records(xyz, normals, intensity, self.dtype, scalars)
         _write_records(self._body, rec, not self.binary)
         self.n_points += rec.shape[0]
 

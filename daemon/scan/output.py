@@ -1,14 +1,15 @@
 """The files of a scan job: each pass corrected and down-sampled as binary PLY with
-sensor-facing normals, the merged cloud, an NPZ with everything, the JSON report, and
-optionally a screened Poisson surface (the ``surface`` extra: pymeshlab, MeshLab's own
-filters)."""
+sensor-facing normals (and its number as CloudCompare's scalar field ``pass``), the merged
+cloud, an NPZ with everything, the JSON report, optionally a screened Poisson surface (the
+``surface`` extra: pymeshlab, MeshLab's own filters), and the scan as one E57 or MCAP file
+(:func:`write_scan_file`, the ``e57`` and ``mcap`` extras)."""
 
 from __future__ import annotations
 
 import json
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -25,7 +26,17 @@ from wristscan.calib.merge import (
 )
 from wristscan.daemon.scan.errors import ScanError, SurfaceUnavailable
 
-__all__ = ["poisson_surface", "write_outputs"]
+if TYPE_CHECKING:
+    from wristscan.daemon.io.mcap_out import McapCloudWriter
+    from wristscan.daemon.scan.job import ScanCalibration
+    from wristscan.daemon.scan.record import RecordedPass
+
+__all__ = ["SCAN_FILE_FORMATS", "poisson_surface", "write_outputs", "write_scan_file"]
+
+SCAN_FILE_FORMATS = ("e57", "mcap")
+"""Formats :func:`write_scan_file` writes (chosen by the file's extension)."""
+POSE_PERIOD_NS = 10_000_000
+"""The flange poses of a scan's MCAP file are at least this far apart (100 Hz)."""
 
 FloatArray = NDArray[np.float64]
 
@@ -55,6 +66,7 @@ def write_outputs(
             v,
             normals=nrm,
             comments=[f"wristscan scan pass {c.index + 1}: {c.label}", f"frame {frame}, metres"],
+            scalars={"scalar_pass": c.index + 1},
         )
         files.append(path)
         npz[f"pass_{c.index + 1:02d}_xyz"] = v.astype(np.float32)
@@ -129,3 +141,86 @@ def poisson_surface(
     path.parent.mkdir(parents=True, exist_ok=True)
     out.save_current_mesh(str(path), binary=True, save_vertex_normal=False)
     return int(faces.shape[0])
+
+
+def write_scan_file(
+    path: Path,
+    clouds: Sequence[PassCloud],
+    merge: MergeResult | None,
+    recorded: Sequence[RecordedPass],
+    frame: str,
+    calibration: ScanCalibration | None = None,
+) -> Path:
+    """The scan as one file, the format by the extension of ``path``:
+
+    - ``.e57``: one scan per pass, named by the pass, its points (all of them, in ``frame`` as
+      the calibration aligned them) with the pass's ICP correction as the scan's pose (identity
+      without ICP), its first and last exposure as acquisition start and end;
+    - ``.mcap``: one ``PointCloud2`` per pass (corrected, in ``frame``) stamped with its first
+      exposure, and the flange's ``PoseStamped`` in the base frame every 10 ms of each pass;
+      with ``calibration``, also the sensor's (``/wristscan/sensor_pose``) in ``frame``,
+      corrected as its pass, so that the trail is drawn with the clouds.
+
+    Raises :class:`~wristscan.daemon.io.cloudfile.CloudFormatError` for another extension or a
+    missing extra."""
+    from wristscan.daemon.io.cloudfile import cloud_format
+
+    fmt = cloud_format(path, allowed=SCAN_FILE_FORMATS)
+    times = {r.index: r.sweep.exposure_ns for r in recorded}
+    if fmt == "e57":
+        from wristscan.daemon.io.e57_out import E57Writer
+
+        with E57Writer(path) as w:
+            for c in clouds:
+                t = times.get(c.index)
+                pose = merge.transform(c.index) if merge is not None else None
+                t0, t1 = (None, None) if t is None or not t.size else (int(t[0]), int(t[-1]))
+                w.add_scan(c.xyz, f"pass {c.index + 1}: {c.label}", pose, None, t0, t1)
+        return path
+    from wristscan.daemon.io.mcap_out import McapCloudWriter
+
+    passes = {r.index: r for r in recorded}
+    with McapCloudWriter(path, metadata={"frame": frame, "units": "metres"}) as m:
+        for c in corrected_clouds(clouds, merge):
+            rec = passes.get(c.index)
+            if rec is None or not rec.sweep.exposure_ns.size:
+                continue
+            m.write_cloud(c.xyz, int(rec.sweep.exposure_ns[0]), frame)
+            correction = merge.transform(c.index) if merge is not None else np.eye(4)
+            _write_trail(m, rec, frame, calibration, correction)
+    return path
+
+
+def _write_trail(
+    m: McapCloudWriter,
+    rec: RecordedPass,
+    frame: str,
+    calibration: ScanCalibration | None,
+    correction: FloatArray,
+) -> None:
+    """The flange (base frame) and, with the calibration, the sensor (``frame``, corrected)
+    every :data:`POSE_PERIOD_NS` of a pass."""
+    from wristscan.calib.align import sensor_poses
+    from wristscan.daemon.io.mcap_out import SENSOR_POSE_TOPIC
+
+    sw = rec.sweep
+    t = sw.exposure_ns
+    keep, last = [], None
+    for k, tk in enumerate(t.tolist()):
+        if last is None or tk - last >= POSE_PERIOD_NS:
+            keep.append(k)
+            last = tk
+    sensor = None
+    if calibration is not None and (frame == "base" or rec.table_angle_rad is not None):
+        sensor = correction @ sensor_poses(
+            sw.flange2base[keep],
+            calibration.sensor2flange,
+            calibration.base2table,
+            rec.table_angle_rad,
+            calibration.encoder_offset_rad,
+            frame="part" if frame == "part" else "base",
+        )
+    for j, k in enumerate(keep):
+        m.write_pose(sw.flange2base[k], int(t[k]))
+        if sensor is not None:
+            m.write_pose(sensor[j], int(t[k]), frame, SENSOR_POSE_TOPIC)

@@ -261,3 +261,43 @@ def test_read_rejects_truncated_body(tmp_path: Path) -> None:
     path.write_bytes(path.read_bytes().rsplit(b"\n", 3)[0])
     with pytest.raises(plyio.PlyError, match="vertices"):
         plyio.read_ply(path)
+
+
+@pytest.mark.parametrize("binary", [True, False], ids=["binary", "ascii"])
+def test_cloudcompare_scalar_fields(tmp_path: Path, binary: bool) -> None:
+    """``scalar_pass`` (ushort) and ``scalar_time`` (double: seconds keep their nanoseconds
+    over a long recording) after the intensity, named as CloudCompare names scalar fields."""
+    rng = np.random.default_rng(11)
+    xyz = rng.normal(size=(50, 3)).astype(np.float32)
+    intensity = rng.integers(0, 256, 50).astype(np.uint8)
+    t = 3600.0 + np.arange(50) * 1.000000001e-4
+    path = tmp_path / "s.ply"
+    with plyio.PlyStreamWriter(
+        path, has_intensity=True, binary=binary, scalars=("scalar_pass", "scalar_time")
+    ) as w:
+        w.write(xyz[:20], intensity[:20], scalars={"scalar_pass": 1, "scalar_time": t[:20]})
+        w.write(xyz[20:], intensity[20:], scalars={"scalar_pass": 2, "scalar_time": t[20:]})
+    header = plyio.read_ply_header(path)
+    vertex = header.element("vertex")
+    assert vertex is not None
+    assert [p for p, _ in vertex.properties][-3:] == ["intensity", "scalar_pass", "scalar_time"]
+    text = path.read_bytes()[: header.size].decode("ascii")
+    assert "property ushort scalar_pass\n" in text and "property double scalar_time\n" in text
+    got = plyio.read_ply(path)
+    np.testing.assert_array_equal(got["xyz"], xyz)
+    np.testing.assert_array_equal(got["intensity"], intensity)
+    np.testing.assert_array_equal(got["scalar_pass"], [1] * 20 + [2] * 30)
+    np.testing.assert_array_equal(got["scalar_time"], t)
+    one = tmp_path / "one.ply"
+    plyio.write_ply(one, xyz, scalars={"scalar_pass": 7}, binary=binary)
+    np.testing.assert_array_equal(plyio.read_ply(one)["scalar_pass"], 7)
+
+
+def test_scalar_fields_must_match_the_declared_ones(tmp_path: Path) -> None:
+    with plyio.PlyStreamWriter(tmp_path / "a.ply", scalars=("scalar_pass",)) as w:
+        with pytest.raises(ValueError, match="scalar fields"):
+            w.write(np.zeros((2, 3)))
+        with pytest.raises(ValueError, match="scalar fields"):
+            w.write(np.zeros((2, 3)), scalars={"scalar_time": 0.0})
+    with pytest.raises(ValueError, match="bad scalar field name"):
+        plyio.write_ply(tmp_path / "b.ply", np.zeros((2, 3)), scalars={"x": 1.0})
