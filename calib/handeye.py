@@ -38,7 +38,9 @@ when the radius was estimated, the radius (metres).
 
 The data model is :mod:`wristscan.calib.handeye_model`, the point model (*) over all sweeps and
 its conditioning :mod:`wristscan.calib.handeye_points`, the steps of :func:`refine`
-:mod:`wristscan.calib.handeye_joint`; the public names are importable from here.
+:mod:`wristscan.calib.handeye_joint`, its error model (sensor noise and the robot's pose error,
+estimated from the residuals) :mod:`wristscan.calib.handeye_uncertainty`, the jackknife over pose
+clusters :mod:`wristscan.calib.handeye_jackknife`; the public names are importable from here.
 """
 
 from __future__ import annotations
@@ -70,16 +72,19 @@ from wristscan.calib.handeye_points import (
     identifiability,
     skew,
 )
+from wristscan.calib.handeye_uncertainty import Jackknife, VarianceComponents
 
 __all__ = [
     "COND_HARD",
     "COND_SOFT",
     "HandEyeResult",
     "Identifiability",
+    "Jackknife",
     "OrientationSolution",
     "OriginSolution",
     "PoorlyConstrained",
     "Sweep",
+    "VarianceComponents",
     "check_identifiability",
     "refine",
     "solve_orientation",
@@ -433,6 +438,9 @@ def refine(
     check: bool = True,
     cond_soft: float = COND_SOFT,
     cond_hard: float = COND_HARD,
+    robot_model: bool = True,
+    clusters: ArrayLike | None = None,
+    working_volume: tuple[tuple[float, float], tuple[float, float]] | None = None,
 ) -> HandEyeResult:
     """Joint least squares of sensor2flange (6 DOF) and the ball centre on all sweeps' points.
 
@@ -457,13 +465,23 @@ def refine(
         loss: scipy robust loss (``"linear"``, ``"soft_l1"``, ``"huber"``, ``"cauchy"``); its
             scale is the robust sigma. The reported covariance always uses the plain
             Gauss-Newton form.
-        robot_sigma_m: per-axis standard deviation (m) of a per-sweep error of the reported flange
-            position (robot repeatability). It is propagated into ``cov`` (sandwich term), because
-            it is shared by all points of a sweep and is not averaged away like sensor noise.
-        check: raise :class:`PoorlyConstrained` when the condition number exceeds ``cond_hard``.
+        robot_sigma_m: per-axis sigma (m) of a per-sweep error of the reported flange position
+            (the data sheet's repeatability), shared by all points of a sweep; propagated into
+            ``cov``; with ``robot_model`` the floor of the estimated one.
+        check: raise :class:`PoorlyConstrained` when the solution is not unique (condition number
+            above ``cond_hard``); above ``cond_soft`` a warning with advice is logged.
+        robot_model: estimate the robot's pose error from the residuals (per sweep and per pose
+            cluster, :mod:`~wristscan.calib.handeye_uncertainty`) and put it into ``cov``; False
+            gives ``s^2 (J^T J)^-1`` plus the ``robot_sigma_m`` term alone.
+        clusters: pose cluster of each sweep (sweeps sharing one robot pose error); default
+            :func:`~wristscan.calib.handeye_uncertainty.pose_clusters` (same orientation, nearby).
+        working_volume: laser-plane ``(y_min, y_max), (z_min, z_max)`` (m) over which the
+            predicted point error is evaluated; default the inlier points' extent.
 
-    Returns a :class:`HandEyeResult` with ``method="joint"``; ``cov = s^2 (J^T J)^-1`` (+ robot
-    term) marginalised to the 6 sensor2flange parameters.
+    Returns a :class:`HandEyeResult` with ``method="joint"``; its ``cov`` (the sandwich covariance
+    of the least-squares estimate under the error model) marginalised to the 6 sensor2flange
+    parameters, ``components`` and ``point_sigma_m``
+    (:func:`wristscan.calib.handeye_jackknife.with_jackknife` adds the jackknife).
     """
     sw = check_sweeps(sweeps, "sweeps")
     if not sw:
@@ -476,10 +494,10 @@ def refine(
     R_base, t, c, radius, mask_all = rounds(
         full, X0, c, radius, np.concatenate(cur), fit_radius, loss, outliers
     )
-    solution = (R_base, t, c, radius)
-    stack = full.subset(mask_all)
     result, ident = joint_result(
-        sw, stack, mask_all, solution, fit_radius, robot_sigma_m, cond_soft
-    )
+        sw, full.subset(mask_all), mask_all, (R_base, t, c, radius), fit_radius, robot_sigma_m,
+        cond_soft,
+        robot_model=robot_model, clusters=clusters, working_volume=working_volume,
+    )  # fmt: skip
     _apply_check(ident, check, cond_soft, cond_hard)
     return result

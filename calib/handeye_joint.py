@@ -14,8 +14,15 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 
+from wristscan.calib import handeye_uncertainty as uncertainty
 from wristscan.calib import se3, sphere
-from wristscan.calib.handeye_model import HandEyeResult, Identifiability, Sweep, check_radius
+from wristscan.calib.handeye_model import (
+    HandEyeResult,
+    Identifiability,
+    Sweep,
+    check_radius,
+    rows_times,
+)
 from wristscan.calib.handeye_points import PointStack, identifiability, right_jacobian
 
 __all__ = ["initial_fits", "joint_result", "rounds", "start"]
@@ -119,15 +126,41 @@ def rounds(
         if stack.p.shape[0] <= n_par:
             raise ValueError("too few inlier points for the joint refinement")
         R_base, t, c, radius = _solve_round(stack, R_base, t, c, radius, fit_radius, loss)
-        # New inlier mask on all points from the robust scale of the current inliers.
-        r_all = full.residuals(R_base, t, c, radius)
-        r_in = r_all[mask_all]
-        sig = 1.4826 * float(np.median(np.abs(r_in - np.median(r_in))))
-        new_mask = np.abs(r_all) <= max(outlier_sigma * sig, min_threshold_m)
+        # New inlier mask on all points from the robust scale of the current inliers, about each
+        # sweep's own offset: the robot's error shifts a whole sweep, which is no outlier.
+        dev = _about_sweep_offsets(full, R_base, t, c, radius, mask_all)
+        d_in = dev[mask_all]
+        sig = 1.4826 * float(np.median(np.abs(d_in - np.median(d_in))))
+        new_mask = np.abs(dev) <= max(outlier_sigma * sig, min_threshold_m)
         if np.array_equal(new_mask, mask_all):
             break
         mask_all = new_mask
     return R_base, t, c, radius, mask_all
+
+
+def _about_sweep_offsets(
+    full: PointStack,
+    R_base: FloatArray,
+    t: FloatArray,
+    c: FloatArray,
+    radius: float,
+    mask: BoolArray,
+) -> FloatArray:
+    """Residuals of all points less their sweep's best offset ``n . d_k`` (least squares on the
+    inliers ``mask``): what is left once each sweep's flange error is allowed for."""
+    w_c = full.to_base(R_base, t) - c
+    dist = np.sqrt(np.einsum("ni,ni->n", w_c, w_c))
+    r, n = dist - radius, w_c / dist[:, None]
+    K = full.n_sweeps
+    w = mask.astype(np.float64)
+    M = np.empty((K, 3, 3))
+    b = np.empty((K, 3))
+    for i in range(3):
+        b[:, i] = np.bincount(full.sweep, w * n[:, i] * r, K)
+        for j in range(i, 3):
+            M[:, i, j] = M[:, j, i] = np.bincount(full.sweep, w * n[:, i] * n[:, j], K)
+    d = np.einsum("kij,kj->ki", np.linalg.pinv(M, rcond=1e-6, hermitian=True), b)
+    return np.asarray(r - np.einsum("ni,ni->n", n, d[full.sweep]), dtype=np.float64)
 
 
 def _solve_round(
@@ -176,49 +209,66 @@ def joint_result(
     fit_radius: bool,
     robot_sigma_m: float,
     cond_soft: float,
+    *,
+    robot_model: bool = False,
+    clusters: ArrayLike | None = None,
+    working_volume: tuple[tuple[float, float], tuple[float, float]] | None = None,
 ) -> tuple[HandEyeResult, Identifiability]:
-    """The joint result on the inliers ``stack``: ``cov = s^2 (J^T J)^-1`` (+ robot term,
-    see :func:`~wristscan.calib.handeye.refine`), residuals, and the identifiability of the
-    problem (its advice in the result above ``cond_soft``)."""
+    """The joint result on the inliers ``stack``: its covariance, residuals, and the
+    identifiability of the problem (its advice in the result above ``cond_soft``).
+
+    ``robot_model``: the covariance of :mod:`~wristscan.calib.handeye_uncertainty` (sensor noise,
+    per-sweep and per-pose-cluster robot error estimated from the residuals, the per-sweep part
+    at least ``robot_sigma_m``); otherwise ``s^2 (J^T J)^-1`` plus ``robot_sigma_m`` per sweep
+    (see :func:`~wristscan.calib.handeye.refine`)."""
     R_base, t, c, radius = solution
-    n_par = 10 if fit_radius else 9
     r = stack.residuals(R_base, t, c, radius)
     J = stack.jacobian(R_base, t, c, fit_radius)
-    N = r.size
-    s2 = float(np.sum(r**2)) / max(N - n_par, 1)
-    H_inv = np.asarray(np.linalg.pinv(J.T @ J), dtype=np.float64)
-    cov_full = s2 * H_inv
-    if robot_sigma_m > 0.0:
-        # A flange-position error e_k of sweep k shifts every residual of the sweep by n_j . e_k,
-        # hence the parameters by -H^-1 G_k e_k with G_k = sum_j J_j^T n_j^T.
-        n = stack.normals(R_base, t, c)
-        G = np.stack(
-            [
-                np.stack(
-                    [np.bincount(stack.sweep, J[:, a] * n[:, i], len(sw)) for i in range(3)], -1
-                )
-                for a in range(n_par)
-            ],
-            axis=1,
-        )  # (sweeps, n_par, 3)
-        B = np.einsum("kpi,kqi->pq", G, G)
-        cov_full = cov_full + robot_sigma_m**2 * (H_inv @ B @ H_inv)
+    n = stack.normals(R_base, t, c)
+    cl = (
+        uncertainty.pose_clusters(sw)
+        if clusters is None
+        else np.asarray(clusters, dtype=np.intp).copy()
+    )
+    if cl.shape != (len(sw),):
+        raise ValueError(f"clusters: expected ({len(sw)},) cluster numbers, got {cl.shape}")
+    cl = np.unique(cl, return_inverse=True)[1].astype(np.intp)
+    p_f = rows_times(stack.p, R_base.T) + t
+    m_f = np.matmul(n[:, None, :], stack.Rf)[:, 0, :]
+    rot = uncertainty.rotation_rows(p_f, m_f)
+    design = uncertainty.design(J, r, n, stack.sweep, cl, rot)
+    if robot_model:
+        vc = uncertainty.components(design, r, cl, robot_sigma_m)
+    else:
+        N, n_par = r.size, J.shape[1]
+        s = float(np.sqrt(np.sum(r**2) / max(N - n_par, 1)))
+        vc = uncertainty.VarianceComponents(s, robot_sigma_m, float("nan"), 0.0, cl)
+    cov_full = uncertainty.covariance(design, vc)
     ident = identifiability(J, R_base, cond_soft)
     per, rms = stack.rms(r)
     splits = np.cumsum([s.n_points for s in sw])[:-1]
     inliers = tuple(np.split(mask_all, splits))
+    if working_volume is None:
+        lo, hi = stack.p.min(axis=0), stack.p.max(axis=0)
+        working_volume = ((float(lo[1]), float(hi[1])), (float(lo[2]), float(hi[2])))
+    X = se3.make(R_base, t)
+    p_rms, p_max = uncertainty.point_error(cov_full[:6, :6], X, *working_volume)
     result = HandEyeResult(
-        sensor2flange=se3.make(R_base, t),
+        sensor2flange=X,
         ball_centre_base=np.asarray(c, dtype=np.float64),
         ball_radius_m=float(radius),
         cov=cov_full[:6, :6].copy(),
         per_sweep_rms=per,
         rms=rms,
-        n_points=int(N),
+        n_points=int(r.size),
         condition=ident.condition,
         method="joint",
         inliers=inliers,
         advice=ident.advice if ident.condition > cond_soft else "",
         cov_full=cov_full,
+        components=vc,
+        point_sigma_m=p_max,
+        point_sigma_rms_m=p_rms,
+        working_volume_m=working_volume,
     )
     return result, ident

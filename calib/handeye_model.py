@@ -7,11 +7,15 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from wristscan.calib import se3
+
+if TYPE_CHECKING:
+    from wristscan.calib.handeye_uncertainty import Jackknife, VarianceComponents
 
 __all__ = [
     "HandEyeResult",
@@ -117,6 +121,13 @@ class HandEyeResult:
     (m, flange frame)]``; ``cov_full`` adds the ball centre (m) and, if estimated, the radius (m).
     Residuals are signed distances of the inlier points to the ball surface (metres).
     ``advice`` is empty unless the condition number exceeded the soft threshold.
+
+    The joint solution's ``cov`` models the robot's pose error as well as the sensor noise
+    (:mod:`~wristscan.calib.handeye_uncertainty`): ``components`` holds the variance components
+    estimated from the residuals, ``jackknife`` the leave-one-pose-cluster-out cross-check (when
+    asked for) and ``point_sigma_m`` / ``point_sigma_rms_m`` the predicted 1-sigma error (3-D,
+    metres) of a measured point due to the calibration, maximum and RMS over the working volume
+    ``working_volume_m`` (laser-plane ``y`` and ``z`` ranges, metres).
     """
 
     sensor2flange: FloatArray
@@ -131,6 +142,11 @@ class HandEyeResult:
     inliers: tuple[BoolArray, ...] = field(repr=False)
     advice: str = ""
     cov_full: FloatArray | None = field(default=None, repr=False)
+    components: VarianceComponents | None = field(default=None, repr=False)
+    jackknife: Jackknife | None = field(default=None, repr=False)
+    point_sigma_m: float = float("nan")
+    point_sigma_rms_m: float = float("nan")
+    working_volume_m: tuple[tuple[float, float], tuple[float, float]] | None = None
 
     @property
     def sigma_rotation_rad(self) -> FloatArray:

@@ -24,12 +24,17 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 BoolArray = NDArray[np.bool_]
 
-#: Condition number (column-equilibrated point Jacobian) above which a warning is logged. Good
-#: pose sets (>= 30 deg tilts about two axes) give 5-11; 15 deg tilts about 20.
+#: Condition number (column-equilibrated point Jacobian) above which the solution is *weakly
+#: constrained*: a warning with advice is logged and the advice goes into the result. Good pose
+#: sets (>= 30 deg tilts about two axes) give 5-11; 15 deg tilts about 20.
 COND_SOFT = 15.0
-#: Condition number above which :class:`PoorlyConstrained` is raised: tilts of ~3 deg give 100,
-#: where 10 um of robot error already means millimetres of error along the weak axis.
-COND_HARD = 100.0
+#: Condition number above which the solution is taken as *not unique* and
+#: :class:`PoorlyConstrained` is raised. Tilts of ``a`` degrees about two axes give about
+#: ``300 / a`` (3 deg: 100, 1 deg: 300); 1e4 means tilts of ~0.03 deg, no more than an arm's own
+#: orientation error, i.e. data that cannot be told from a pose set with a null direction (which
+#: gives an infinite condition number). Below it the solution is unique and its covariance says
+#: how weakly the weakest direction is determined (docs/calibration.md).
+COND_HARD = 1e4
 
 _AXES = ("X", "Y", "Z")
 

@@ -38,6 +38,7 @@ fits for comparison.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections.abc import Callable
@@ -47,6 +48,7 @@ from typing import TypeVar, cast
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from wristscan.calib import sphere_check
 from wristscan.calib.sphere_algebra import (
     REJECT_U,
     Robust,
@@ -61,11 +63,13 @@ from wristscan.calib.sphere_algebra import (
     robust_scale,
     weights,
 )
+from wristscan.calib.sphere_check import ImplausibleFit
 from wristscan.calib.sphere_search import hypothesise
 
 __all__ = [
     "BallFit",
     "CircleFit",
+    "ImplausibleFit",
     "Robust",
     "SphereFit",
     "fit_circle",
@@ -105,6 +109,12 @@ class BallFit:
     """(N,) signed geometric residuals |p - c| - r of all points (positive outside)."""
     scale: float
     """Noise scale of the inliers: robust (MAD) scale, or the residual RMS when robust=None."""
+    plausible: bool = True
+    """False when the fit does not look like the ball (:mod:`~wristscan.calib.sphere_check`)."""
+    why: str = ""
+    """Why the fit is implausible (empty when plausible)."""
+    noise_m: float = math.nan
+    """The noise (m) the RMS was judged against: the given one, else the estimated one."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -130,6 +140,10 @@ def fit_sphere(
     rng: np.random.Generator | int | None = None,
     threshold: float | None = None,
     max_hypotheses: int = 4096,
+    noise_m: float | None = None,
+    expected_radius: tuple[float, float] | None = None,
+    min_fraction: float | None = None,
+    strict: bool = False,
 ) -> SphereFit:
     """Fit a sphere to ``points`` (N, 3) in metres, robust to the post, table and stray points.
 
@@ -147,13 +161,17 @@ def fit_sphere(
     Raises ValueError on bad shapes, non-finite values, fewer than 4 points or coplanar points.
     Without ``radius`` or ``radius_range`` a scan in which the table far outweighs the ball may be
     fitted by a large sphere through the table: give one of them for cluttered scans.
+
+    Plausibility (:mod:`~wristscan.calib.sphere_check`): the result's ``plausible`` is False, and
+    ``why`` says why, when its RMS is far above ``noise_m`` (the sensor's noise sigma, m; default
+    the noise estimated from the points), its radius outside ``expected_radius`` (m) or its
+    inliers few (or fewer than ``min_fraction`` of the points). ``strict`` raises
+    :class:`~wristscan.calib.sphere_check.ImplausibleFit` (a ValueError) instead.
     """
-    return cast(
-        SphereFit,
-        _fit_ball(
-            _as_points(points, 3), radius, robust, radius_range, rng, threshold, max_hypotheses
-        ),
-    )
+    P = _as_points(points, 3)
+    fit = _fit_ball(P, radius, robust, radius_range, rng, threshold, max_hypotheses)
+    judged = _judged(fit, P, radius is not None, noise_m, expected_radius, min_fraction, strict)
+    return cast(SphereFit, judged)
 
 
 def fit_circle(
@@ -165,20 +183,52 @@ def fit_circle(
     rng: np.random.Generator | int | None = None,
     threshold: float | None = None,
     max_hypotheses: int = 4096,
+    noise_m: float | None = None,
+    expected_radius: tuple[float, float] | None = None,
+    min_fraction: float | None = None,
+    strict: bool = False,
 ) -> CircleFit:
     """Fit a circle to ``points`` (N, 2) in metres, e.g. one profile's ``(y, z)`` arc of the ball.
 
     Same arguments and behaviour as :func:`fit_sphere`, in the plane (needs at least 3 points). For
     a profile of a ball of known radius R, the circle radius is unknown: pass
     ``radius_range=(0, 1.01 * R)`` (a little slack for noise near the equator) and recover the
-    sphere centre with :func:`sphere_centre_from_circle`.
+    sphere centre with :func:`sphere_centre_from_circle`. A circle through the corners of a box
+    beside a short arc of the ball comes back with ``plausible`` False (see :func:`fit_sphere`).
     """
-    return cast(
-        CircleFit,
-        _fit_ball(
-            _as_points(points, 2), radius, robust, radius_range, rng, threshold, max_hypotheses
-        ),
+    P = _as_points(points, 2)
+    fit = _fit_ball(P, radius, robust, radius_range, rng, threshold, max_hypotheses)
+    judged = _judged(fit, P, radius is not None, noise_m, expected_radius, min_fraction, strict)
+    return cast(CircleFit, judged)
+
+
+def _judged(
+    fit: BallFit,
+    P: FloatArray,
+    radius_known: bool,
+    noise_m: float | None,
+    expected_radius: tuple[float, float] | None,
+    min_fraction: float | None,
+    strict: bool,
+) -> BallFit:
+    """``fit`` with its plausibility (:func:`~wristscan.calib.sphere_check.judge`)."""
+    if noise_m is not None and not (math.isfinite(noise_m) and noise_m > 0.0):
+        raise ValueError(f"noise_m must be a positive length (m), got {noise_m!r}")
+    noise = sphere_check.estimated_noise(P) if noise_m is None else float(noise_m)
+    d = P.shape[1]
+    why = sphere_check.judge(
+        rms=fit.rms,
+        radius=fit.radius,
+        n_inliers=fit.n_inliers,
+        n_points=P.shape[0],
+        n_parameters=d + (0 if radius_known else 1),
+        noise_m=noise,
+        expected_radius=expected_radius,
+        min_fraction=min_fraction,
     )
+    if why and strict:
+        raise sphere_check.ImplausibleFit(why)
+    return dataclasses.replace(fit, plausible=not why, why=why, noise_m=noise)
 
 
 def kasa_fit(points: ArrayLike) -> BallFit:

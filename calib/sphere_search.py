@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 
 from wristscan.calib.sphere_algebra import SCALE_FLOOR_U, Sphere, distances, residuals, riemann
 
-__all__ = ["hypothesise"]
+__all__ = ["hypothesise", "noise_sigma"]
 
 log = logging.getLogger(__name__)
 
@@ -38,7 +38,7 @@ _LADDER_MIN_SAMPLES = 4  # ... and it holds at least this many minimal samples' 
 _LADDER_MAX = 0.1  # widest band, relative to the sphere's radius (or the largest one allowed)
 
 
-def _noise_sigma(U: FloatArray, gen: np.random.Generator) -> float:
+def noise_sigma(U: FloatArray, gen: np.random.Generator) -> float:
     """Noise scale from the thickness of local neighbourhoods (model-free, robust by the median)."""
     n, d = U.shape
     # Thin dense clouds first: neighbourhoods must be wider than the noise, or their thickness
@@ -239,7 +239,7 @@ def hypothesise(
         return everything, None
     fixed_band = band is not None
     if band is None:
-        band = _BAND_SIGMAS * _noise_sigma(U, gen)
+        band = _BAND_SIGMAS * noise_sigma(U, gen)
     band = max(band, SCALE_FLOOR_U)
     sub = U[gen.choice(n, size=min(n, _SCORE_POINTS), replace=False)]
     lo, hi, locals_ = _local_scales(U, rho_known, rho_range)

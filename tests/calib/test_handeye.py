@@ -166,11 +166,18 @@ def test_noisy_errors_are_within_the_reported_covariance(seed: int) -> None:
 
 def test_robot_noise_term_widens_the_covariance(rng: np.random.Generator) -> None:
     data = make(rng, robot=10e-6, sensor=20e-6)
-    plain = handeye.refine(data.all, X_TRUE, BALL_R)
-    wide = handeye.refine(data.all, plain, BALL_R, robot_sigma_m=10e-6)
+    plain = handeye.refine(data.all, X_TRUE, BALL_R, robot_model=False)  # sensor noise alone
+    wide = handeye.refine(data.all, plain, BALL_R, robot_sigma_m=10e-6, robot_model=False)
+    found = handeye.refine(data.all, plain, BALL_R)  # the robot's error from the residuals
     np.testing.assert_allclose(wide.sensor2flange, plain.sensor2flange, atol=1e-10)
+    np.testing.assert_allclose(found.sensor2flange, plain.sensor2flange, atol=1e-10)
     # Robot error is shared by a whole sweep: it dominates the points' sensor noise.
     assert np.all(wide.sigma_translation_m > 2.0 * plain.sigma_translation_m)
+    assert np.all(found.sigma_translation_m > 2.0 * plain.sigma_translation_m)
+    # The simulated 10 um per sweep, seen in the scatter of the FOV group's sweeps.
+    assert found.components is not None
+    assert 6e-6 < found.components.sweep_sigma_estimated_m < 14e-6
+    assert 12e-6 < found.components.noise_sigma_m < 22e-6
 
 
 # ------------------------------------------------------------------------------------------

@@ -443,3 +443,83 @@ def test_results_are_read_only_and_residuals_signed() -> None:
     assert not fit.inliers[-1] and fit.n_inliers == 100
     with pytest.raises(ValueError):
         fit.centre[0] = 0.0
+
+
+# ------------------------------------------------------------------------------- plausibility
+
+
+def _box_profile(
+    seed: int, rc: float = 3.6e-3, half_deg: float = 15.0, boxes: int = 0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A profile of a 40 mm ball whose arc (an ``rc`` circle, ``half_deg`` either side) hides
+    among box tops (two fixed ones, or ``boxes`` random ones) and the table, as the laser line
+    sees it from above (0.02 mm noise): the points, which are on the ball, the circle's centre."""
+    rng = np.random.default_rng(seed)
+    zc, half = 0.1, np.radians(half_deg)
+    y = np.arange(-0.035, 0.035, 0.1e-3)
+    z = np.full_like(y, zc + 0.03)  # the table
+    on = np.abs(y) < rc * np.sin(half)
+    z[on] = zc - np.sqrt(rc**2 - y[on] ** 2)
+    tops = [(-0.03, -0.008, zc - 0.004), (0.006, 0.02, zc + 0.012)]
+    if boxes:
+        tops = [(*np.sort(rng.uniform(-0.035, 0.035, 2)), zc + rng.uniform(-0.02, 0.03))
+                for _ in range(boxes)]  # fmt: skip
+    for a, b, h in tops:
+        m = (y > a) & (y < b) & ~on
+        z[m] = np.minimum(z[m], h)
+    pts = np.column_stack([y, z]) + rng.normal(0.0, 20e-6, (y.size, 2))
+    return pts, on, np.array([0.0, zc])
+
+
+def test_a_circle_through_the_clutter_is_flagged() -> None:
+    """Today's failure on real data: a wrong circle with a fine radius, returned silently. It now
+    says that its RMS is far above the noise, and ``strict`` refuses it."""
+    pts, _, c = _box_profile(150)
+    fit = sphere.fit_circle(pts, radius_range=(1e-3, 0.0206))
+    assert np.linalg.norm(fit.centre - c) > 2e-3  # the search picked box corners ...
+    assert not fit.plausible and "times the noise" in fit.why  # ... and says so
+    assert 10e-6 < fit.noise_m < 40e-6  # estimated from the points (truth 20 um)
+    with pytest.raises(sphere.ImplausibleFit, match="implausible fit"):
+        sphere.fit_circle(pts, radius_range=(1e-3, 0.0206), strict=True)
+    # Told the sensor's noise, the same.
+    assert not sphere.fit_circle(pts, radius_range=(1e-3, 0.0206), noise_m=20e-6).plausible
+
+
+def test_good_fits_are_plausible_and_other_signs_are_named() -> None:
+    rng = np.random.default_rng(4)
+    sigma = 20e-6
+    pts = cap(rng, 2000, 50.0) + rng.normal(0.0, sigma, (2000, 3))
+    fit = sphere.fit_sphere(pts, radius=R_BALL)
+    assert fit.plausible and fit.why == ""
+    assert fit.noise_m == pytest.approx(sigma, rel=0.5)
+    # The radius is not the one expected (a 1 inch ball where a half-inch one was meant).
+    wrong = sphere.fit_sphere(pts, expected_radius=(0.024, 0.026), noise_m=sigma)
+    assert not wrong.plausible and "outside the expected" in wrong.why
+    # Noise far above the sensor's: the configured noise judges the RMS.
+    assert "times the noise" in sphere.fit_sphere(pts, noise_m=1e-6).why
+    # Few inliers: of a share, or absolutely.
+    strays = rng.uniform(pts.min(axis=0) - 0.02, pts.max(axis=0) + 0.02, (3000, 3))
+    many = sphere.fit_sphere(np.vstack([pts, strays]), radius=R_BALL, min_fraction=0.5)
+    assert not many.plausible and "fewer than 50 %" in many.why
+    twelve = cap(rng, 12, 50.0) + rng.normal(0.0, sigma, (12, 3))
+    few = sphere.fit_sphere(twelve, radius=R_BALL, noise_m=sigma)
+    assert not few.plausible and "fewer than 15" in few.why  # 5 per parameter
+
+
+def test_plausibility_over_random_cluttered_profiles() -> None:
+    """Over profiles with arcs of all sizes among boxes: every wrong circle is flagged (or the
+    fit refused), no right one."""
+    flagged = wrong = false_alarm = 0
+    for seed in range(120):
+        g = np.random.default_rng(1000 + seed)
+        rc, half, boxes = g.uniform(3e-3, 0.02), g.uniform(10.0, 75.0), int(g.integers(1, 5))
+        pts, on, _ = _box_profile(seed, rc, half, boxes)
+        try:
+            fit = sphere.fit_circle(pts, radius_range=(1e-3, 0.0206))
+        except ValueError:
+            continue  # refused with a message: not silent
+        bad = int(np.count_nonzero(fit.inliers & on)) < 0.5 * fit.n_inliers
+        wrong += bad
+        flagged += bad and not fit.plausible
+        false_alarm += (not bad) and not fit.plausible
+    assert wrong >= 3 and flagged == wrong and false_alarm == 0, (wrong, flagged, false_alarm)

@@ -13,7 +13,11 @@ from numpy.typing import NDArray
 
 from wristscan.calib import handeye, se3
 from wristscan.daemon.calibrate.sensor.plan import rotation_between
-from wristscan.daemon.calibrate.sensor.result import SensorCalibrationResult
+from wristscan.daemon.calibrate.sensor.result import (
+    SensorCalibrationResult,
+    predicted_point_error,
+    working_volume,
+)
 
 if TYPE_CHECKING:
     from wristscan.daemon.io.report import Report
@@ -42,11 +46,10 @@ def build_report(
         ["parameter", "nominal", "two-step", "1 sigma", "joint", "1 sigma", "LOO jackknife"],
         _param_rows(result),
         "Translation of the sensor origin in the flange frame; rotation uncertainty about the "
-        "sensor axes. 1 sigma from the covariance (joint: sensor noise and the robot's "
-        f"repeatability, {(result.robot_sigma_m or s.robot_sigma_m) * 1e6:.1f} um per axis: the "
-        f"larger of the data sheet's {s.robot_sigma_m * 1e6:.1f} um and the "
-        f"{result.observed_robot_sigma_m * 1e6:.1f} um the places' scatter shows, per pass).",
+        "sensor axes. 1 sigma from the covariance (joint: sensor noise and the robot's pose "
+        "error, see below); the jackknife over the orientations beside it as a cross-check.",
     )
+    rep.text(_uncertainty_text(result))
     _validation_section(rep, result)
     if result.notes:
         rep.section("Notes")
@@ -152,6 +155,7 @@ def _param_rows(result: SensorCalibrationResult) -> list[list[str]]:
                 "",
             ]
         )
+    loo_r = None if result.loo is None else result.loo.sigma[:3]
     for i, a in enumerate("XYZ"):
         rows.append(
             [
@@ -161,10 +165,40 @@ def _param_rows(result: SensorCalibrationResult) -> list[list[str]]:
                 f"{math.degrees(st_r[i]):.5f}",
                 "0",
                 f"{math.degrees(sj_r[i]):.5f}",
-                "",
+                "-" if loo_r is None else f"{math.degrees(loo_r[i]):.5f}",
             ]
         )
     return rows
+
+
+def _uncertainty_text(result: SensorCalibrationResult) -> str:
+    """How the joint solution's sigmas were made, and what they mean for a measured point."""
+    s, j = result.settings, result.joint
+    vc = j.components
+    rms, top = predicted_point_error(result)
+    (y0, y1), (z0, z1) = working_volume(s)
+    parts = []
+    if vc is not None:
+        est = vc.sweep_sigma_estimated_m
+        parts.append(
+            "The covariance models the sensor noise "
+            f"({_fmt_um(vc.noise_sigma_m)} um per point) and the robot's pose error, which every "
+            "point of a sweep shares: per sweep "
+            f"{_fmt_um(vc.sweep_sigma_m)} um per axis (at least "
+            f"{_fmt_um(result.robot_sigma_m or s.robot_sigma_m)} um: the larger of the data "
+            "sheet's repeatability and the places' scatter"
+            + (f", the sweeps' scatter {_fmt_um(est)} um" if math.isfinite(est) else "")
+            + f") and per pose (orientation) {_fmt_um(vc.pose_sigma_m)} um, both estimated from "
+            "the residuals."
+        )
+    parts.append(
+        f"Predicted error of a measured point due to the calibration: {_fmt_um(rms)} um RMS, "
+        f"{_fmt_um(top)} um at worst over the working volume (laser line "
+        f"{y0 * 1e3:.0f}..{y1 * 1e3:.0f} mm, depth {z0 * 1e3:.0f}..{z1 * 1e3:.0f} mm)."
+    )
+    if j.advice:
+        parts.append(f"Weakly constrained (condition {j.condition:.1f}): {j.advice}.")
+    return " ".join(parts)
 
 
 def _validation_section(rep: Report, result: SensorCalibrationResult) -> None:

@@ -11,13 +11,22 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wristscan.calib import handeye
+from wristscan.calib.handeye_uncertainty import point_error
 from wristscan.daemon.calibrate.sensor.plan import OrientationPlan, Settings, rotation_between
 from wristscan.daemon.calibrate.sensor.solve import ApparentLatency
 from wristscan.daemon.calibrate.sensor.sweeps import RecordedSweep
 from wristscan.daemon.calibrate.sensor.validate import CheckScan, LeaveOneOut
 from wristscan.daemon.io.calibfile import Calibration, Residuals, RobotIdentity, SensorIdentity
 
-__all__ = ["COVARIANCE_PARAMETERS", "METHOD", "SensorCalibrationResult", "calibration_of"]
+__all__ = [
+    "COVARIANCE_PARAMETERS",
+    "METHOD",
+    "SensorCalibrationResult",
+    "calibration_of",
+    "predicted_point_error",
+    "uncertainty_parameters",
+    "working_volume",
+]
 
 FloatArray = NDArray[np.float64]
 
@@ -73,6 +82,40 @@ class SensorCalibrationResult:
         return self.joint.sensor2flange
 
 
+def working_volume(s: Settings) -> tuple[tuple[float, float], tuple[float, float]]:
+    """The sensor's working volume in the laser plane: ``(y range), (z range)`` (m)."""
+    return (-s.fov_width_m / 2, s.fov_width_m / 2), (s.depth_min_m, s.depth_max_m)
+
+
+def predicted_point_error(result: SensorCalibrationResult) -> tuple[float, float]:
+    """The calibration's predicted 1-sigma error of a measured point (3-D, m) over the sensor's
+    working volume: ``(RMS, maximum)``."""
+    j = result.joint
+    return point_error(j.cov, j.sensor2flange, *working_volume(result.settings))
+
+
+def uncertainty_parameters(result: SensorCalibrationResult) -> dict[str, float]:
+    """The uncertainty as named parameters: the 1 sigma of each parameter, the error model's
+    components (sensor noise, the robot's error per sweep and per pose), the predicted point
+    error in the working volume and the jackknife's sigmas (when there is one)."""
+    j = result.joint
+    sig = np.sqrt(np.clip(np.diag(j.cov), 0.0, None))
+    out = {f"sigma_{name}": float(v) for name, v in zip(COVARIANCE_PARAMETERS, sig, strict=True)}
+    vc = j.components
+    if vc is not None:
+        out["noise_sigma_m"] = vc.noise_sigma_m
+        out["robot_sweep_sigma_m"] = vc.sweep_sigma_m
+        out["robot_sweep_sigma_estimated_m"] = vc.sweep_sigma_estimated_m
+        out["robot_pose_sigma_m"] = vc.pose_sigma_m
+    rms, top = predicted_point_error(result)
+    out["point_sigma_rms_m"] = rms
+    out["point_sigma_max_m"] = top
+    if result.loo is not None:
+        for name, v in zip(COVARIANCE_PARAMETERS, result.loo.sigma, strict=True):
+            out[f"jackknife_sigma_{name}"] = float(v)
+    return out
+
+
 def _sym(C: FloatArray) -> FloatArray:
     return np.asarray((C + C.T) / 2)
 
@@ -100,6 +143,7 @@ def calibration_of(
         ),
         "two_step_rotation_diff_rad": rotation_between(t.sensor2flange, j.sensor2flange),
     }
+    params.update(uncertainty_parameters(result))
     if result.loo is not None:
         params["loo_max_translation_m"] = result.loo.max_translation_dev_m
         params["loo_max_rotation_rad"] = result.loo.max_rotation_dev_rad

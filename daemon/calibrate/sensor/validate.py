@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wristscan.calib import handeye, sphere
+from wristscan.calib import handeye_uncertainty as uncertainty
 from wristscan.daemon.calibrate.sensor.errors import CalibrationFailed
 from wristscan.daemon.calibrate.sensor.plan import rotation_between
 from wristscan.daemon.calibrate.sensor.sweeps import RecordedSweep, base_label, sample_indices
@@ -57,6 +58,14 @@ class LeaveOneOut:
         t = self.sensor2flange[:, :3, 3]
         n = t.shape[0]
         return np.asarray(np.sqrt((n - 1) / n * np.sum((t - t.mean(0)) ** 2, axis=0)))
+
+    @property
+    def sigma(self) -> FloatArray:
+        """Jackknife standard error of ``[w_x, w_y, w_z (rad, about the sensor axes), t_x, t_y,
+        t_z (m)]``, the order of the covariance: a cross-check of the reported sigmas over the
+        orientations (the field-of-view group is always kept, so it cannot show its own share)."""
+        d = uncertainty.local_errors(self.sensor2flange, self.sensor2flange[0])
+        return np.sqrt(np.clip(np.diag(uncertainty.jackknife_cov(d)), 0.0, None))
 
 
 def leave_one_out(
