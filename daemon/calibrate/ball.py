@@ -127,6 +127,8 @@ def ball_from_sweep(
         raise BallNotFound(f"no sphere of radius {radius_m * 1e3:.2f} mm fits: {exc}") from None
     if fit.n_inliers < _MIN_BALL_POINTS:
         raise BallNotFound(f"only {fit.n_inliers} points lie on the ball")
+    if not fit.plausible:
+        raise BallNotFound(f"the points do not fit the ball: {fit.why}")
     # Velocity: least-squares slope of the sensor position over the profiles on the ball,
     # weighted by their points (pure translation: every point moves with the sensor).
     counts = np.bincount(prof[fit.inliers], minlength=sweep.n_profiles).astype(np.float64)

@@ -163,6 +163,12 @@ class AutomaticCollection:
                 f"the sensor sees {got}, not a ball of radius {R * 1e3:.2f} mm: jog the robot so "
                 "that the laser line crosses the ball (or check --ball-radius-mm)"
             )
+        if not circle.plausible:
+            # Clutter beside a short arc (a box corner, the ball's stand) fits a wrong circle.
+            raise CalibrationFailed(
+                f"the arc in view is not the ball's ({circle.why}): jog the robot so that the "
+                "laser line crosses the ball away from other objects"
+            )
         self.rec.say(
             "find",
             f"ball arc in view: radius {circle.radius * 1e3:.2f} mm at y "
