@@ -31,6 +31,7 @@ from scipy.spatial.transform import Rotation
 __all__ = [
     "POINTCLOUD2",
     "POSE_STAMPED",
+    "TF_MESSAGE",
     "DecodedCloud",
     "cdr_to_cloud",
     "cloud_cdr",
@@ -38,12 +39,14 @@ __all__ = [
     "pointcloud2",
     "pose_cdr",
     "pose_stamped",
+    "tf_cdr",
     "type_hash",
     "typestore",
 ]
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 _FLOAT32 = 7
 """``sensor_msgs/msg/PointField.FLOAT32``."""
 _STORE = Stores.ROS2_JAZZY
@@ -161,6 +164,25 @@ def pose_cdr(transform: NDArray[np.floating], stamp_ns: int, frame_id: str = "ba
     return bytes(
         typestore().serialize_cdr(pose_stamped(transform, stamp_ns, frame_id), POSE_STAMPED)
     )
+
+
+def tf_cdr(transform: NDArray[np.floating], stamp_ns: int, parent: str, child: str) -> bytes:
+    """CDR bytes of a ``tf2_msgs/msg/TFMessage`` with one transform: the pose of ``child`` in
+    ``parent`` as a 4x4 rigid transform (metres), e.g. the sensor in the flange frame."""
+    m = np.asarray(transform, dtype=np.float64)
+    if m.shape != (4, 4):
+        raise ValueError(f"transform must be 4x4, got {m.shape}")
+    types = typestore().types
+    qx, qy, qz, qw = Rotation.from_matrix(m[:3, :3]).as_quat()
+    tr = types["geometry_msgs/msg/Transform"](
+        translation=types["geometry_msgs/msg/Vector3"](x=m[0, 3], y=m[1, 3], z=m[2, 3]),
+        rotation=types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
+    )
+    stamped = types["geometry_msgs/msg/TransformStamped"](
+        header=_header(stamp_ns, parent), child_frame_id=child, transform=tr
+    )
+    msg = types[TF_MESSAGE](transforms=[stamped])
+    return bytes(typestore().serialize_cdr(msg, TF_MESSAGE))
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,7 @@ from pydantic import BaseModel, Field, PrivateAttr, ValidationError, model_valid
 
 from wristscan.daemon.config.errors import ConfigError, format_validation_error
 from wristscan.daemon.config.hardware import CellConfig, RobotConfig, SensorConfig, TableConfig
+from wristscan.daemon.config.ros2 import Ros2Config
 from wristscan.daemon.config.service import (
     CalibrationConfig,
     PipelineConfig,
@@ -53,6 +54,7 @@ class Config(StrictModel):
     pipeline: PipelineConfig = Field(default_factory=PipelineConfig)
     zenoh: ZenohConfig = Field(default_factory=ZenohConfig)
     calibration: CalibrationConfig = Field(default_factory=CalibrationConfig)
+    ros2: Ros2Config = Field(default_factory=Ros2Config)
     sim: SimConfig | None = None
 
     _source: str = PrivateAttr(default="<config>")

@@ -87,6 +87,19 @@ def load_setup(cfg: Config, uncalibrated: bool = False) -> AlignmentSetup:
     )
 
 
+def _ros2_class(cfg: Config) -> Any:
+    """The ``[ros2]`` publisher class when enabled, else None; checked before anything opens."""
+    if not cfg.ros2.enabled:
+        return None
+    try:
+        from wristscan.daemon.cloud.ros2pub import Ros2Publisher
+    except ImportError as exc:
+        raise StartupError(
+            f"[ros2] enabled needs the extra: pip install 'wristscan[ros2]' ({exc})"
+        ) from exc
+    return Ros2Publisher
+
+
 class Service:
     """One running daemon: devices, pipeline, zenoh face; reloadable."""
 
@@ -99,6 +112,7 @@ class Service:
         self.pipeline: Pipeline | None = None
         self.zenoh: DaemonZenoh | None = None
         self._session: Any = None
+        self.ros2: Any = None
         self._stop = threading.Event()
         self._reload = threading.Event()
         self._signal = threading.Event()
@@ -107,6 +121,7 @@ class Service:
 
     # --- building blocks ----------------------------------------------------------------------
     def _start(self, cfg: Config, setup: AlignmentSetup) -> None:
+        ros2_class = _ros2_class(cfg)
         devices = make_devices(cfg)
         devices.open()
         try:
@@ -124,6 +139,9 @@ class Service:
             ),
             stats=lambda: self.pipeline.stats() if self.pipeline else {},
         )
+        if ros2_class is not None:
+            self.ros2 = ros2_class(session, cfg.ros2, cfg.cell.name)
+            self.ros2.publish_tf_static(setup.sensor2flange)
         pl = cfg.pipeline
         pcfg = pairer_config(cfg, robot_model(cfg, devices))
         pipeline = Pipeline(
@@ -131,7 +149,7 @@ class Service:
             devices.robot,
             Pairer(pcfg),
             setup,
-            face.publish_cloud,
+            face.publish_cloud if self.ros2 is None else self.ros2.tee(face.publish_cloud),
             table=devices.table if pcfg.use_table else None,
             settings=PipelineSettings(
                 batch_s=pl.batch_s,
@@ -155,6 +173,9 @@ class Service:
     def _shutdown(self, drain: bool = True) -> None:
         if self.pipeline is not None:
             self.pipeline.stop(drain=drain)
+        if self.ros2 is not None:
+            self.ros2.close()
+            self.ros2 = None
         if self.zenoh is not None:
             self.zenoh.close()
         if self._session is not None:
@@ -191,11 +212,13 @@ class Service:
         assert old_cfg is not None and self.pipeline is not None
         same_devices = all(
             getattr(old_cfg, k) == getattr(new_cfg, k)
-            for k in ("robot", "sensor", "table", "sync", "pipeline", "zenoh")
+            for k in ("robot", "sensor", "table", "sync", "pipeline", "zenoh", "ros2")
         )
         if same_devices:
             self.pipeline.set_setup(new_setup)  # one reference swap: atomic for the worker
             self.cfg = new_cfg
+            if self.ros2 is not None:
+                self.ros2.publish_tf_static(new_setup.sensor2flange)
         else:
             old_setup = self.pipeline.setup
             self._shutdown(drain=True)
