@@ -115,6 +115,10 @@ class Config(StrictModel):
         rows.append(("frame", f"{p.frame}, batches of {p.batch_s:g} s"))
         calib = self.calibration.file
         rows.append(("calibration", str(calib) if calib is not None else "none"))
+        ros = self.ros2
+        if ros.enabled:
+            where = f"{ros.topic_for(self.cell.name)} ({ros.mode}, domain {ros.domain_id})"
+            rows.append(("ros2", where + (", /tf_static" if ros.tf_static else "")))
         if self.sim is not None:
             c, ss = self.sim.controller, self.sim.sensor
             rows.append(

@@ -119,6 +119,9 @@ def test_ros2_section() -> None:
         "base_link"
     )
     assert parse_config(_config_text()).ros2.enabled is False
+    # check-config's summary says where the clouds go in ROS 2 (only when enabled).
+    assert f"/wristscan/{cfg.cell.name}/cloud (rmw_zenoh, domain 3)" in "\n".join(cfg.summary())
+    assert not any(line.startswith("ros2") for line in parse_config(_config_text()).summary())
     with pytest.raises(ConfigError, match=r"ros2\.topic"):
         parse_config(_config_text() + '\n[ros2]\ntopic = "no/leading/slash"\n')
     with pytest.raises(ConfigError, match=r"ros2\.mode"):
