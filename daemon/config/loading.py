@@ -27,7 +27,7 @@ from wristscan.daemon.config.service import (
     SyncConfig,
     ZenohConfig,
 )
-from wristscan.daemon.config.sim import SimConfig
+from wristscan.daemon.config.sim import SIM_KINDS_FOR_DRIVER, SimConfig
 from wristscan.daemon.config.values import CELL_NAME, StrictModel, cross_field, render_value
 
 __all__ = [
@@ -94,6 +94,31 @@ class Config(StrictModel):
             )
         if self.sync.pairing == "encoder" and self.sync.encoder_bits is None:
             raise cross_field("sync.encoder_bits", 'required with pairing = "encoder"')
+        return self
+
+    @model_validator(mode="after")
+    def _sim_speaks_the_driver(self) -> Config:
+        # A simulated cell whose sensor speaks another protocol than the daemon reads would start
+        # and then deliver nothing (or fail deep inside the simulator).
+        if self.sim is None:
+            return self
+        driver, kind = self.sensor.driver, self.sim.sensor.kind
+        kinds = SIM_KINDS_FOR_DRIVER.get(driver)
+        if kinds is not None and kind not in kinds:
+            raise cross_field(
+                "sim.sensor.kind",
+                f'"{kind}" is not what [sensor] driver = "{driver}" reads: use '
+                + " or ".join(f'"{k}"' for k in kinds),
+            )
+        url = str(getattr(self.sensor.options, "url", ""))
+        if kind == "scip-tcp" and not url.startswith("socket://"):
+            raise cross_field(
+                "sensor.options.url", 'the simulated "scip-tcp" scanner needs a socket:// url'
+            )
+        if kind == "scip-serial" and url.startswith("socket://"):
+            raise cross_field(
+                "sensor.options.url", 'the simulated "scip-serial" scanner needs a serial device'
+            )
         return self
 
     def summary(self) -> list[str]:

@@ -127,6 +127,18 @@ SimSensorKind = Literal[
     "lpf1-udp", "lpf1-tcp", "lpf1-serial", "rf627-udp", "scip-tcp", "scip-serial"
 ]
 
+SIM_SCIP_ARES = 1440
+"""Steps per revolution (ARES) of the simulated SCIP scanner: a scan has at most this many."""
+
+SIM_KINDS_FOR_DRIVER: dict[str, tuple[str, ...]] = {
+    "lpf1-udp": ("lpf1-udp",),
+    "lpf1-tcp": ("lpf1-tcp",),
+    "lpf1-serial": ("lpf1-serial",),
+    "rf627-udp": ("rf627-udp",),
+    "scip": ("scip-tcp", "scip-serial"),
+}
+"""The simulated sensors each built-in ``[sensor] driver`` reads (plug-in drivers: not known)."""
+
 
 class SimSensorConfig(StrictModel):
     kind: SimSensorKind = "lpf1-udp"
@@ -155,6 +167,12 @@ class SimSensorConfig(StrictModel):
     def _depth(self) -> SimSensorConfig:
         if not self.depth_min_m < self.depth_max_m:
             raise cross_field("depth_max_m", "must be greater than depth_min_m")
+        if self.kind.startswith("scip") and self.n_points > SIM_SCIP_ARES:
+            raise cross_field(
+                "n_points",
+                f"a SCIP scan has at most {SIM_SCIP_ARES} steps (the simulated scanner's ARES); "
+                f"kind = {self.kind!r} needs n_points <= {SIM_SCIP_ARES} (e.g. 1081)",
+            )
         return self
 
 

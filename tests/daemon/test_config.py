@@ -173,10 +173,40 @@ def test_scip_sensor_defaults_to_a_24_bit_millisecond_clock() -> None:
     text = edit(text, "sensor.options", "bind_host", None)
     text = edit(text, "sensor.options", "port", None)
     text = edit(text, "sensor.options", "url", '"socket://192.168.0.10:10940"')
+    text = edit(text, "sim.sensor", "kind", '"scip-tcp"')
+    text = edit(text, "sim.sensor", "n_points", "1081")
     cfg = parse_config(text)
     assert isinstance(cfg.sensor, ScipSensorConfig)
     assert cfg.sensor.clock_bits == 24 and cfg.sensor.clock_tick_s == 1e-3
     assert cfg.sensor.time_modulus_ns == 2**24 * 10**6
+
+
+def test_the_simulated_sensor_must_speak_the_driver() -> None:
+    """A daemon reading one protocol beside a simulator speaking another would start and then
+    see nothing; a SCIP scan longer than the simulated scanner's ARES failed deep inside it."""
+    scip = edit(SIM_TEXT, "sensor", "driver", '"scip"')
+    scip = edit(scip, "sensor", "clock_bits", None)
+    scip = edit(scip, "sensor", "clock_tick_s", None)
+    scip = edit(scip, "sensor.options", "bind_host", None)
+    scip = edit(scip, "sensor.options", "port", None)
+    scip = edit(scip, "sensor.options", "url", '"socket://127.0.0.1:10940"')
+    with pytest.raises(ConfigError, match=r'sim\.sensor\.kind: "lpf1-udp" is not what .*"scip"'):
+        parse_config(scip)
+    with pytest.raises(ConfigError, match=r"sim\.sensor\.n_points: a SCIP scan has at most 1440"):
+        parse_config(edit(scip, "sim.sensor", "kind", '"scip-tcp"'))
+    tcp = edit(edit(scip, "sim.sensor", "kind", '"scip-tcp"'), "sim.sensor", "n_points", "1081")
+    assert parse_config(tcp).sim is not None
+    with pytest.raises(ConfigError, match=r"sensor\.options\.url: .*serial device"):
+        parse_config(edit(tcp, "sim.sensor", "kind", '"scip-serial"'))
+    with pytest.raises(ConfigError, match=r'sim\.sensor\.kind: "rf627-udp" is not what'):
+        parse_config(edit(SIM_TEXT, "sim.sensor", "kind", '"rf627-udp"'))
+
+
+def test_the_sim_scip_ares_is_the_simulators() -> None:
+    from wristscan.daemon.config.sim import SIM_SCIP_ARES
+    from wristscan.drivers.sim.sensor_config import SensorSimConfig
+
+    assert SensorSimConfig(kind="scip-tcp", n_points=1081).scip_ares == SIM_SCIP_ARES
 
 
 def test_explicit_prefix_and_scale_table() -> None:
