@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -453,7 +454,11 @@ def main() -> int:
     print(f"   clean run  {state:<13} {clean.seconds:5.0f} s  {len(tests)} tests{flaky}")
     bad = _summary(verdicts, pending)
     total = clean.seconds + sum(v.run.seconds + v.confirm_seconds for v in verdicts.values())
-    print(f"   total {total / 60:.1f} min; junit XML, output and fault logs in {work}")
+    if args.keep or clean_failed or bad:  # what went wrong stays to be read
+        print(f"   total {total / 60:.1f} min; junit XML, output and fault logs in {work}")
+    else:
+        print(f"   total {total / 60:.1f} min (--keep DIR keeps the junit XML, output and logs)")
+        shutil.rmtree(work, ignore_errors=True)
     if args.json:
         _write_json(args.json, tests, clean, verdicts)
     if clean_failed:
