@@ -287,3 +287,19 @@ def _matrix_rotvec(R: NDArray[np.float64]) -> NDArray[np.float64]:
     angle = float(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)))
     axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
     return np.zeros(3) if angle < 1e-12 else axis / (2 * np.sin(angle)) * angle
+
+
+def png_size(data: bytes) -> tuple[int, int]:
+    """(width, height) of a PNG file's bytes, after checking its signature and the CRC of its
+    header chunk (a truncated or foreign file fails the asserts)."""
+    import struct
+    import zlib
+
+    assert data[:8] == b"\x89PNG\r\n\x1a\n", "not a PNG signature"
+    length, kind = struct.unpack(">I4s", data[8:16])
+    assert kind == b"IHDR" and length == 13, "no PNG header chunk"
+    body = data[16 : 16 + length]
+    (crc,) = struct.unpack(">I", data[16 + length : 20 + length])
+    assert zlib.crc32(kind + body) == crc, "PNG header CRC mismatch"
+    width, height = struct.unpack(">II", body[:8])
+    return int(width), int(height)

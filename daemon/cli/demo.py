@@ -12,7 +12,12 @@ from wristscan.daemon.cli._common import EXIT_FAILED, EXIT_USAGE, fail
 def register(app: typer.Typer) -> None:
     @app.command("demo")
     def demo(
-        out: Path = typer.Option(Path("scan.ply"), "--out", "-o", help="Merged cloud (PLY)."),
+        out: Path = typer.Option(
+            Path("scan.ply"),
+            "--out",
+            "-o",
+            help="Merged cloud (PLY); a PNG preview is written next to it.",
+        ),
         voxel_mm: float = typer.Option(
             0.5, "--voxel-mm", min=0.01, help="Voxel size of the merged cloud (mm)."
         ),
@@ -47,6 +52,10 @@ def register(app: typer.Typer) -> None:
             f"part top face in the merged cloud: {res.top_height_m * 1e3:.3f} mm above the table "
             f"(true 70.000 mm), flat to {res.top_flatness_m * 1e6:.1f} um RMS"
         )
+        if res.preview is not None:
+            typer.echo(f"preview: {res.preview} (from above and from the side, coloured by height)")
+        else:
+            typer.echo(f"preview skipped: {res.preview_skipped}")
         typer.echo(
             f"done in {time.monotonic() - t0:.0f} s; open {res.out} in MeshLab or CloudCompare"
         )

@@ -58,6 +58,10 @@ class DemoResult:
     top_flatness_m: float
     pass_offsets_m: list[float] = field(default_factory=list)
     stats: dict[str, Any] = field(default_factory=dict)
+    preview: Path | None = None
+    """The PNG preview next to ``out``, or None when it could not be drawn."""
+    preview_skipped: str = ""
+    """Why there is no preview (e.g. the ``plot`` extra is missing)."""
 
 
 class _Collector:
@@ -167,6 +171,7 @@ def _write_result(
     from wristscan.daemon.io.ply import write_ply
 
     write_ply(out, merged)
+    preview, skipped = _write_preview(out.with_suffix(".png"), merged, len(offsets))
     height, flat = _top_face(xyz, truth)
     return DemoResult(
         out=out,
@@ -179,7 +184,21 @@ def _write_result(
         top_flatness_m=flat,
         pass_offsets_m=offsets,
         stats=stats,
+        preview=preview,
+        preview_skipped=skipped,
     )
+
+
+def _write_preview(path: Path, merged: NDArray[np.float32], passes: int) -> tuple[Path | None, str]:
+    """The PNG preview of the merged cloud, or (None, why not): a missing extra never fails
+    the demo."""
+    from wristscan.daemon.io.preview import PreviewUnavailable, write_preview
+
+    title = f"wristscan demo: {merged.shape[0]} points from {passes} passes (part frame)"
+    try:
+        return write_preview(path, merged, title=title), ""
+    except PreviewUnavailable as exc:
+        return None, str(exc)
 
 
 def _scan_passes(
