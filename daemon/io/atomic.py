@@ -20,7 +20,7 @@ import os
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
-from typing import IO
+from typing import IO, Self
 
 __all__ = ["atomic_writer", "write_atomic"]
 
@@ -92,3 +92,24 @@ def write_atomic(path: str | os.PathLike[str], data: bytes | str) -> Path:
     with atomic_writer(path) as f:
         f.write(data.encode("utf-8") if isinstance(data, str) else data)
     return Path(path)
+
+
+class CloseOrAbort:
+    """A file writer as a context manager: the block ending normally closes it (the file lands),
+    an exception aborts it (nothing lands, the exception goes on)."""
+
+    def close(self) -> object:
+        """Finish the file (what it returns is the writer's own: e.g. the path written)."""
+        raise NotImplementedError
+
+    def abort(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, *exc: object) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()

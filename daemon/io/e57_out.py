@@ -21,14 +21,14 @@ import shutil
 import tempfile
 from pathlib import Path
 from types import SimpleNamespace
-from typing import IO, Any, Self
+from typing import IO, Any
 
 import numpy as np
 import pye57
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from wristscan.daemon.io.atomic import atomic_writer
+from wristscan.daemon.io.atomic import CloseOrAbort, atomic_writer
 
 __all__ = ["GPS_UTC_OFFSET_S", "E57Writer", "SpooledScan", "utc_ns_to_gps_s"]
 
@@ -41,7 +41,7 @@ def utc_ns_to_gps_s(t_ns: int) -> float:
     return t_ns * 1e-9 - GPS_UTC_OFFSET_S
 
 
-class E57Writer:
+class E57Writer(CloseOrAbort):
     """Write scans into an E57 file one at a time; see the module doc."""
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
@@ -134,15 +134,6 @@ class E57Writer:
     def _discard(self) -> None:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(self._tmp)
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, *exc: object) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
 
 
 def _scan_header(

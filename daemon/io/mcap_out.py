@@ -23,14 +23,14 @@ from __future__ import annotations
 import os
 from contextlib import AbstractContextManager
 from pathlib import Path
-from typing import IO, Literal, Self, cast
+from typing import IO, Literal, cast
 
 import numpy as np
 from mcap.writer import CompressionType, Writer
 from numpy.typing import NDArray
 
 from wristscan.daemon.cloud import ros2msg
-from wristscan.daemon.io.atomic import atomic_writer
+from wristscan.daemon.io.atomic import CloseOrAbort, atomic_writer
 
 __all__ = ["CLOUD_TOPIC", "POSE_TOPIC", "SENSOR_POSE_TOPIC", "McapCloudWriter"]
 
@@ -48,7 +48,7 @@ class _Abort(Exception):
     """Thrown into the atomic writer to make it drop the temporary file."""
 
 
-class McapCloudWriter:
+class McapCloudWriter(CloseOrAbort):
     """Stream clouds (and robot poses) into an MCAP file; see the module doc."""
 
     def __init__(
@@ -155,12 +155,3 @@ class McapCloudWriter:
         self._closed = True
         exc = _Abort()
         self._atomic.__exit__(_Abort, exc, None)
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, *exc: object) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()

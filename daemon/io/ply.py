@@ -44,12 +44,12 @@ import tempfile
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any, Self
+from typing import IO, Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from wristscan.daemon.io.atomic import atomic_writer
+from wristscan.daemon.io.atomic import CloseOrAbort, atomic_writer
 
 __all__ = [
     "SCALAR_TYPES",
@@ -253,7 +253,7 @@ def write_ply(
         _write_records(f, rec, not binary)
 
 
-class PlyStreamWriter:
+class PlyStreamWriter(CloseOrAbort):
     """Write a PLY file chunk by chunk without holding the cloud in memory.
 
     Chunks go to a temporary body file beside ``path``; :meth:`close` writes the header with the
@@ -340,15 +340,6 @@ class PlyStreamWriter:
             self._body.close()
         with contextlib.suppress(FileNotFoundError):
             os.unlink(self._body_path)
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, *exc: object) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
 
 
 # ------------------------------------------------------------------------------------ reading

@@ -166,14 +166,18 @@ def test_relative_paths_resolve_against_the_config_folder(
     assert cfg.calibration.table_file == Path("/var/lib/wristscan/table.json")
 
 
-def test_scip_sensor_defaults_to_a_24_bit_millisecond_clock() -> None:
+def _scip_text(url: str) -> str:
+    """The embedded default read by the SCIP driver at ``url`` (the simulator left as it is)."""
     text = edit(SIM_TEXT, "sensor", "driver", '"scip"')
     text = edit(text, "sensor", "clock_bits", None)
     text = edit(text, "sensor", "clock_tick_s", None)
     text = edit(text, "sensor.options", "bind_host", None)
     text = edit(text, "sensor.options", "port", None)
-    text = edit(text, "sensor.options", "url", '"socket://192.168.0.10:10940"')
-    text = edit(text, "sim.sensor", "kind", '"scip-tcp"')
+    return edit(text, "sensor.options", "url", f'"{url}"')
+
+
+def test_scip_sensor_defaults_to_a_24_bit_millisecond_clock() -> None:
+    text = edit(_scip_text("socket://192.168.0.10:10940"), "sim.sensor", "kind", '"scip-tcp"')
     text = edit(text, "sim.sensor", "n_points", "1081")
     cfg = parse_config(text)
     assert isinstance(cfg.sensor, ScipSensorConfig)
@@ -184,12 +188,7 @@ def test_scip_sensor_defaults_to_a_24_bit_millisecond_clock() -> None:
 def test_the_simulated_sensor_must_speak_the_driver() -> None:
     """A daemon reading one protocol beside a simulator speaking another would start and then
     see nothing; a SCIP scan longer than the simulated scanner's ARES failed deep inside it."""
-    scip = edit(SIM_TEXT, "sensor", "driver", '"scip"')
-    scip = edit(scip, "sensor", "clock_bits", None)
-    scip = edit(scip, "sensor", "clock_tick_s", None)
-    scip = edit(scip, "sensor.options", "bind_host", None)
-    scip = edit(scip, "sensor.options", "port", None)
-    scip = edit(scip, "sensor.options", "url", '"socket://127.0.0.1:10940"')
+    scip = _scip_text("socket://127.0.0.1:10940")
     with pytest.raises(ConfigError, match=r'sim\.sensor\.kind: "lpf1-udp" is not what .*"scip"'):
         parse_config(scip)
     with pytest.raises(ConfigError, match=r"sim\.sensor\.n_points: a SCIP scan has at most 1440"):
