@@ -54,6 +54,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from wristscan.calib import se3, sphere, tcp
 from wristscan.calib.handeye_joint import joint_result, rounds, start
+from wristscan.calib.handeye_kinematic import KinematicPrior, with_kinematic_prior
 from wristscan.calib.handeye_model import (
     HandEyeResult,
     Identifiability,
@@ -80,6 +81,7 @@ __all__ = [
     "HandEyeResult",
     "Identifiability",
     "Jackknife",
+    "KinematicPrior",
     "OrientationSolution",
     "OriginSolution",
     "PoorlyConstrained",
@@ -441,6 +443,7 @@ def refine(
     robot_model: bool = True,
     clusters: ArrayLike | None = None,
     working_volume: tuple[tuple[float, float], tuple[float, float]] | None = None,
+    kinematic_prior: KinematicPrior | None = None,
 ) -> HandEyeResult:
     """Joint least squares of sensor2flange (6 DOF) and the ball centre on all sweeps' points.
 
@@ -463,11 +466,9 @@ def refine(
         init_band_m: distance (m) from the ball within which points of a sweep whose initial
             sphere fit failed are taken for the first round.
         loss: scipy robust loss (``"linear"``, ``"soft_l1"``, ``"huber"``, ``"cauchy"``); its
-            scale is the robust sigma. The reported covariance always uses the plain
-            Gauss-Newton form.
+            scale is the robust sigma; ``cov`` always uses the plain Gauss-Newton form.
         robot_sigma_m: per-axis sigma (m) of a per-sweep error of the reported flange position
-            (the data sheet's repeatability), shared by all points of a sweep; propagated into
-            ``cov``; with ``robot_model`` the floor of the estimated one.
+            (the data sheet's repeatability) in ``cov``; with ``robot_model`` the estimate's floor.
         check: raise :class:`PoorlyConstrained` when the solution is not unique (condition number
             above ``cond_hard``); above ``cond_soft`` a warning with advice is logged.
         robot_model: estimate the robot's pose error from the residuals (per sweep and per pose
@@ -477,17 +478,17 @@ def refine(
             :func:`~wristscan.calib.handeye_uncertainty.pose_clusters` (same orientation, nearby).
         working_volume: laser-plane ``(y_min, y_max), (z_min, z_max)`` (m) over which the
             predicted point error is evaluated; default the inlier points' extent.
+        kinematic_prior: the arm's model and the prior sigma of its DH parameters: the error
+            common to all poses (:mod:`~wristscan.calib.handeye_kinematic`) added to ``cov``.
 
-    Returns a :class:`HandEyeResult` with ``method="joint"``; its ``cov`` (the sandwich covariance
-    of the least-squares estimate under the error model) marginalised to the 6 sensor2flange
-    parameters, ``components`` and ``point_sigma_m``
+    Returns a :class:`HandEyeResult` (``method="joint"``): ``cov`` the sandwich covariance under
+    the error model, for the 6 sensor2flange parameters, ``components``, ``point_sigma_m``
     (:func:`wristscan.calib.handeye_jackknife.with_jackknife` adds the jackknife).
     """
     sw = check_sweeps(sweeps, "sweeps")
     if not sw:
         raise ValueError("refine needs at least one sweep")
-    if ball_radius is None:
-        fit_radius = True
+    fit_radius = fit_radius or ball_radius is None
     X0, c, radius, cur = start(sw, initial, ball_radius, masks, init_band_m)
     full = PointStack.build(sw)
     outliers = (outlier_sigma, min_threshold_m, max_rounds)
@@ -500,4 +501,6 @@ def refine(
         robot_model=robot_model, clusters=clusters, working_volume=working_volume,
     )  # fmt: skip
     _apply_check(ident, check, cond_soft, cond_hard)
+    if kinematic_prior is not None:
+        result = with_kinematic_prior(result, sw, full.subset(mask_all), kinematic_prior)
     return result

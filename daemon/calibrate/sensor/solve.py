@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wristscan.calib import handeye, sphere
+from wristscan.calib.dh import DHParams, get_model
 from wristscan.daemon.calibrate.sensor.errors import CalibrationFailed
 from wristscan.daemon.calibrate.sensor.sweeps import MIN_BALL_POINTS, RecordedSweep
 
@@ -28,6 +29,7 @@ __all__ = [
     "compensate_timing",
     "inconsistent_locations",
     "inlier_masks",
+    "kinematic_prior_for",
     "location_offsets",
     "observed_robot_sigma",
     "origin_estimate",
@@ -42,23 +44,52 @@ BoolArray = NDArray[np.bool_]
 
 
 def solve(
-    sweeps: Sequence[RecordedSweep], ball_radius_m: float, robot_sigma_m: float = 0.0
+    sweeps: Sequence[RecordedSweep],
+    ball_radius_m: float,
+    robot_sigma_m: float = 0.0,
+    kinematic_prior: handeye.KinematicPrior | None = None,
 ) -> tuple[handeye.HandEyeResult, handeye.HandEyeResult]:
     """The paper's two-step solution and the joint refinement started from it, on the same
     sweeps. ``sweeps`` must list the FOV sweeps first, then the tilted ones (the order of
-    ``per_sweep_rms`` and ``inliers``). Raises :class:`CalibrationFailed` with advice."""
+    ``per_sweep_rms`` and ``inliers``). ``kinematic_prior`` (the arm's model and the prior sigma
+    of its DH parameters, :mod:`wristscan.calib.handeye_kinematic`) adds the arm's systematic
+    kinematic error to the joint solution's covariance. Raises :class:`CalibrationFailed` with
+    advice."""
     fov = [s.for_solver() for s in sweeps if s.stage == "fov"]
     tilt = [s.for_solver() for s in sweeps if s.stage == "tilt"]
     if [s.stage for s in sweeps] != ["fov"] * len(fov) + ["tilt"] * len(tilt):
         raise ValueError("solve: list the FOV sweeps first, then the tilted ones")
     try:
         two = handeye.two_step(fov, tilt, ball_radius_m)
-        joint = handeye.refine([*fov, *tilt], two, ball_radius_m, robot_sigma_m=robot_sigma_m)
+        joint = handeye.refine(
+            [*fov, *tilt], two, ball_radius_m, robot_sigma_m=robot_sigma_m,
+            kinematic_prior=kinematic_prior,
+        )  # fmt: skip
     except handeye.PoorlyConstrained as exc:
         raise CalibrationFailed(f"the sweeps do not determine sensor2flange: {exc}") from None
     except ValueError as exc:
         raise CalibrationFailed(f"the calibration could not be solved: {exc}") from None
     return two, joint
+
+
+def kinematic_prior_for(
+    model: DHParams | None, nominal: str | DHParams | None, seed: FloatArray | None = None
+) -> handeye.KinematicPrior | None:
+    """The default prior of the arm's kinematic error for a robot whose flange poses come from
+    ``model`` (``Robot.kinematic_model()``; None: the configured ``nominal`` one): a model that
+    differs from the ``nominal`` table is a factory calibration (15 % of a real arm's DH
+    deviations left, :func:`~wristscan.calib.handeye_kinematic.prior_sigma` ``"partial"``), the
+    nominal table has all of them (``"none"``). None when neither is known. ``seed``: the arm's
+    joints in its working configuration (the inverse kinematics' branch), default the usual one.
+    """
+    if model is None and nominal is None:
+        return None
+    table = None if nominal is None else get_model(nominal)
+    used = model if model is not None else table
+    assert used is not None
+    factory = table is not None and not np.allclose(used.arrays(), table.arrays(), 0.0, 1e-12)
+    prior = handeye.KinematicPrior.for_factory(used, "partial" if factory else "none")
+    return prior if seed is None else dataclasses.replace(prior, seed=np.asarray(seed, float))
 
 
 def quick_refine(
