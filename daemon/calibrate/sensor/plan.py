@@ -121,6 +121,13 @@ class Settings:
     robot_sigma_m: float = 0.0
     """Per-axis standard deviation of the robot's repeatability (m), propagated into the
     covariance (the error shared by all points of a sweep)."""
+    robot_model: str | None = None
+    """The configured (nominal) robot model: with ``kinematic_prior``, what the flange poses'
+    model is judged against (a model other than the nominal table is a factory calibration)."""
+    kinematic_prior: bool = True
+    """Include the arm's kinematic error left by its factory calibration (or all of it, on the
+    nominal table) in the reported uncertainty (:mod:`wristscan.calib.handeye_kinematic`); it
+    needs ``robot_model``."""
     leave_one_out: bool = True
     check_scan: bool = True
     lock_timeout_s: float = 20.0
@@ -205,6 +212,7 @@ def settings_for(cfg: Config, **overrides: Any) -> Settings:
     if rp is not None:
         kw["robot_sigma_m"] = iso9283_axis_sigma(rp)
     r = cfg.robot
+    kw["robot_model"] = r.model
     base = Settings()
     kw["travel_speed_m_s"] = min(base.travel_speed_m_s, r.max_speed_m_s)
     kw["travel_accel_m_s2"] = min(base.travel_accel_m_s2, r.max_accel_m_s2)
