@@ -418,8 +418,8 @@ def passes_only(calibration: str, latency_s: float, json_out: str | None = None)
     finally:
         cell.stop()
     tj, rj = _errors(X, truth)
-    session = Session(f"{Path(calibration).stem} ({tj:.3f} mm, {rj:.4f} deg off)", None, truth,
-                      0.0, passes)  # type: ignore[arg-type]  # fmt: skip
+    session = Session(f"{Path(calibration).stem} ({tj:.3f} mm, {rj:.4f} deg off)", None, truth,  # type: ignore[arg-type]
+                      0.0, passes)  # fmt: skip
     figs = _pass_figures(session, True)
     return report("two scan passes mapped with a calibration file", figs, json_out)
 

@@ -682,6 +682,7 @@ def measure_pipeline(
             flt_a = _minor_faults(daemon.pid)
             wait_a = _runqueue_wait_ns(daemon.pid)
             threads_a = _thread_ticks(daemon.pid)
+            assert cell.sensor._proc is not None and cell.sensor._proc.pid is not None
             sim_pid = cell.sensor._proc.pid
             sim_a = _cpu_ticks(sim_pid)
             if t_resume <= t_a:

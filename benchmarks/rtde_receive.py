@@ -60,6 +60,7 @@ def run_one(backend: str, hog: bool, duration_s: float) -> dict[str, float]:
         rx = r._rx  # the receive child: a benchmark may look inside
         assert rx is not None
         pid = rx.proc.pid
+        assert pid is not None
         lost0, skipped0 = r.counters.lost, sim.state()["skipped_cycles"]
         cpu0, t0 = _cpu_s(pid), time.monotonic()
         hogs = []

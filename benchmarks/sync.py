@@ -678,12 +678,12 @@ def receive(
     by a process that starts reading at ``start_ns``, under ``load``. Records arriving when the
     queue is ``max_backlog_ns`` deep are lost (socket buffer full). Returns (stamps, kept)."""
     n = sent.shape[0]
-    net = LOADED_FLOOR_NS + rng.gamma(2.0, LOADED_JITTER_NS / math.sqrt(2.0), n)
-    spike = rng.random(n) < LOADED_SPIKE_P
+    net = np.asarray(LOADED_FLOOR_NS + rng.gamma(2.0, LOADED_JITTER_NS / math.sqrt(2.0), n))
+    spike = np.asarray(rng.random(n) < LOADED_SPIKE_P)
     net[spike] += np.minimum(rng.pareto(1.5, int(spike.sum())) * MS, 200 * MS)
     ready = (sent + np.rint(net).astype(np.int64)).tolist()
-    late = rng.uniform(1 * MS, 5 * MS, n)  # wake-up delay under load
-    slow = rng.uniform(1.2, 1.6, n) * period_ns
+    late = np.asarray(rng.uniform(1 * MS, 5 * MS, n))  # wake-up delay under load
+    slow = np.asarray(rng.uniform(1.2, 1.6, n)) * period_ns
     stamp = np.zeros(n, dtype=np.int64)
     kept = np.ones(n, dtype=bool)
     done = start_ns  # when the reader is free for the next record
