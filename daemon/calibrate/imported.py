@@ -30,10 +30,9 @@ from numpy.typing import NDArray
 from wristscan.calib import perpose
 from wristscan.calib import pose_conventions as pc
 from wristscan.calib.handeye import PoorlyConstrained
-from wristscan.daemon.calibrate.sensor.result import COVARIANCE_PARAMETERS
+from wristscan.daemon.calibrate.sensor.result import joint_calibration
 from wristscan.daemon.io.calibfile import (
     Calibration,
-    Residuals,
     RobotIdentity,
     SensorIdentity,
     write_calibration,
@@ -321,10 +320,6 @@ def _jackknife_notes(j: perpose.HandEyeResult, jk: perpose.Jackknife) -> list[st
     return out
 
 
-def _sym(C: FloatArray) -> FloatArray:
-    return np.asarray((C + C.T) / 2)
-
-
 def calibration_of(
     result: ImportResult, robot: RobotIdentity, sensor: SensorIdentity
 ) -> Calibration:
@@ -334,13 +329,7 @@ def calibration_of(
     d = result.dataset
     start = result.solution.start
     params: dict[str, float] = {
-        "ball_radius_m": result.ball_radius_m,
-        "ball_centre_x_m": float(j.ball_centre_base[0]),
-        "ball_centre_y_m": float(j.ball_centre_base[1]),
-        "ball_centre_z_m": float(j.ball_centre_base[2]),
-        "condition_number": float(j.condition),
         "n_poses": float(len(d.names)),
-        "n_points": float(j.n_points),
         "ball_side": float(result.solution.side),
         "robot_sigma_m": result.robot_sigma_m,
         "point_sigma_m": float(getattr(j, "point_sigma_m", math.nan)),
@@ -353,20 +342,15 @@ def calibration_of(
             params[f"jackknife_sigma_{a}_m"] = float(v)
         for a, v in zip("xyz", result.jackknife.sigma_rotation_rad, strict=True):
             params[f"jackknife_sigma_rot_sensor_{a}_rad"] = float(v)
-    params = {k: v for k, v in params.items() if math.isfinite(v)}
-    per = np.nan_to_num(np.asarray(j.per_sweep_rms, dtype=np.float64))
     notes = [f"imported from {d.folder} ({d.convention}, {d.units})", *result.notes]
-    return Calibration(
-        kind="sensor2flange",
-        transform=j.sensor2flange,
+    return joint_calibration(
+        j,
+        result.ball_radius_m,
+        params,
+        method=METHOD,
+        notes="; ".join(notes),
         robot=robot,
         sensor=sensor,
-        method=METHOD,
-        residuals=Residuals(float(j.rms), tuple(float(v) for v in per)),
-        covariance=_sym(np.asarray(j.cov, dtype=np.float64)),
-        covariance_parameters=COVARIANCE_PARAMETERS,
-        parameters=params,
-        notes="; ".join(notes),
     )
 
 

@@ -23,6 +23,7 @@ __all__ = [
     "METHOD",
     "SensorCalibrationResult",
     "calibration_of",
+    "joint_calibration",
     "predicted_point_error",
     "uncertainty_parameters",
     "working_volume",
@@ -116,8 +117,43 @@ def uncertainty_parameters(result: SensorCalibrationResult) -> dict[str, float]:
     return out
 
 
-def _sym(C: FloatArray) -> FloatArray:
-    return np.asarray((C + C.T) / 2)
+def joint_calibration(
+    joint: handeye.HandEyeResult,
+    ball_radius_m: float,
+    parameters: dict[str, float],
+    *,
+    method: str,
+    notes: str,
+    robot: RobotIdentity,
+    sensor: SensorIdentity,
+) -> Calibration:
+    """A calibration file of a joint solution (``calibrate sensor`` and ``calibrate import``):
+    its transform, symmetrised covariance and per-sweep residuals; the ball and the solution's
+    figures, then ``parameters``, as named parameters (those not finite left out)."""
+    j = joint
+    params: dict[str, float] = {
+        "ball_radius_m": ball_radius_m,
+        "ball_centre_x_m": float(j.ball_centre_base[0]),
+        "ball_centre_y_m": float(j.ball_centre_base[1]),
+        "ball_centre_z_m": float(j.ball_centre_base[2]),
+        "condition_number": float(j.condition),
+        "n_points": float(j.n_points),
+        **parameters,
+    }
+    cov = np.asarray(j.cov, dtype=np.float64)
+    per = np.nan_to_num(np.asarray(j.per_sweep_rms, dtype=np.float64))
+    return Calibration(
+        kind="sensor2flange",
+        transform=j.sensor2flange,
+        robot=robot,
+        sensor=sensor,
+        method=method,
+        residuals=Residuals(float(j.rms), tuple(float(v) for v in per)),
+        covariance=(cov + cov.T) / 2,
+        covariance_parameters=COVARIANCE_PARAMETERS,
+        parameters={k: v for k, v in params.items() if math.isfinite(v)},
+        notes=notes,
+    )
 
 
 def calibration_of(
@@ -127,13 +163,7 @@ def calibration_of(
     ball, the validation figures and the two-step figures as named parameters."""
     j, t = result.joint, result.two_step
     params: dict[str, float] = {
-        "ball_radius_m": result.settings.ball_radius_m,
-        "ball_centre_x_m": float(j.ball_centre_base[0]),
-        "ball_centre_y_m": float(j.ball_centre_base[1]),
-        "ball_centre_z_m": float(j.ball_centre_base[2]),
-        "condition_number": float(j.condition),
         "n_sweeps": float(len(result.sweeps)),
-        "n_points": float(j.n_points),
         "min_z_angle_deg": float(result.min_z_angle_deg),
         "robot_sigma_m": float(result.robot_sigma_m or result.settings.robot_sigma_m),
         "observed_robot_sigma_m": float(result.observed_robot_sigma_m),
@@ -153,18 +183,13 @@ def calibration_of(
         params["check_rms_m"] = result.check.rms_m
     if result.latency is not None and math.isfinite(result.latency.offset_s):
         params["apparent_latency_offset_s"] = result.latency.offset_s
-    params = {k: v for k, v in params.items() if math.isfinite(v)}
-    per = np.nan_to_num(np.asarray(j.per_sweep_rms, dtype=np.float64))
     notes = "; ".join(result.notes)
-    return Calibration(
-        kind="sensor2flange",
-        transform=j.sensor2flange,
+    return joint_calibration(
+        j,
+        result.settings.ball_radius_m,
+        params,
+        method=METHOD,
+        notes=("manual mode; " if result.manual else "") + notes,
         robot=robot,
         sensor=sensor,
-        method=METHOD,
-        residuals=Residuals(float(j.rms), tuple(float(v) for v in per)),
-        covariance=_sym(np.asarray(j.cov, dtype=np.float64)),
-        covariance_parameters=COVARIANCE_PARAMETERS,
-        parameters=params,
-        notes=("manual mode; " if result.manual else "") + notes,
     )
