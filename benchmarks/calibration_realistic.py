@@ -137,8 +137,16 @@ def _sweep_run(
     two = handeye.two_step(fov, tilt, BALL_R_M)
     if arm_seed is not None:
         return _dh_solutions(sweeps, two, arm_seed)
+    return _new_and_old(sweeps, two)
+
+
+def _new_and_old(
+    sweeps: list[handeye.Sweep], start: handeye.HandEyeResult
+) -> tuple[handeye.HandEyeResult, handeye.HandEyeResult]:
+    """From ``start``: the solution with the robot's error modelled, with its jackknife (new),
+    and from there the one with sensor noise and the data sheet's repeatability only (old)."""
     new = handeye.refine(
-        sweeps, two, BALL_R_M, robot_sigma_m=DATASHEET_SIGMA_M,
+        sweeps, start, BALL_R_M, robot_sigma_m=DATASHEET_SIGMA_M,
         working_volume=WORKING_VOLUME,
     )  # fmt: skip
     new = with_jackknife(sweeps, new)
@@ -198,16 +206,7 @@ def _pose_run(rng: np.random.Generator) -> tuple[handeye.HandEyeResult, handeye.
         X0, BALL_C_M + 1e-3, BALL_R_M, np.eye(6), np.zeros(N_POSES), 0.0, 0, 0.0, "start",
         tuple(np.ones(s.n_points, dtype=bool) for s in poses),
     )  # fmt: skip
-    new = handeye.refine(
-        poses, start, BALL_R_M, robot_sigma_m=DATASHEET_SIGMA_M,
-        working_volume=WORKING_VOLUME,
-    )  # fmt: skip
-    new = with_jackknife(poses, new)
-    old = handeye.refine(
-        poses, new, BALL_R_M, robot_sigma_m=DATASHEET_SIGMA_M, robot_model=False,
-        working_volume=WORKING_VOLUME,
-    )  # fmt: skip
-    return new, old
+    return _new_and_old(poses, start)
 
 
 @dataclass
