@@ -43,7 +43,9 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parents[1] / "tests"))
 from _report import Figure, report
+from support import primitive_signed_distance
 
 from wristscan.calib import se3
 from wristscan.calib.merge import MergeOptions, corrected_clouds, merge_passes, voxel_mean
@@ -58,9 +60,7 @@ from wristscan.daemon.simcell.cell import (
     start_cell,
     write_truth_calibrations,
 )
-from wristscan.drivers.sim.mesh import TriangleMesh
-from wristscan.drivers.sim.primitives import Primitive
-from wristscan.drivers.sim.scene import Box, Cylinder, Scene, demo_scene
+from wristscan.drivers.sim.scene import Scene, demo_scene
 
 FloatArray = NDArray[np.float64]
 
@@ -82,39 +82,15 @@ OVERLAP_VOXEL_M = 0.5e-3
 # Ground truth: distance to the table-mounted primitives (part frame)
 
 
-def _primitive_distance(prim: Primitive, p: FloatArray) -> FloatArray:
-    """Unsigned distance (m) of points ``p`` (N, 3, mount frame) from the surface of ``prim``;
-    exact for boxes and cylinders, the largest face-plane distance for a convex mesh (exact
-    off the edges, which is what a measured point near the surface needs)."""
-    q = p @ prim.mount2local[:3, :3].T + prim.mount2local[:3, 3]
-    if isinstance(prim, Box):
-        d = np.abs(q) - prim.half
-        out = np.linalg.norm(np.maximum(d, 0.0), axis=1) + np.minimum(d.max(axis=1), 0.0)
-        return np.asarray(np.abs(out))
-    if isinstance(prim, Cylinder):
-        r = np.hypot(q[:, 0], q[:, 1]) - prim.radius
-        h = np.abs(q[:, 2] - 0.5 * prim.height) - 0.5 * prim.height
-        d = np.stack([r, h], axis=1)
-        out = np.linalg.norm(np.maximum(d, 0.0), axis=1) + np.minimum(d.max(axis=1), 0.0)
-        return np.asarray(np.abs(out))
-    if isinstance(prim, TriangleMesh):
-        v, f = prim.vertices, prim.faces
-        a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-        n = np.cross(b - a, c - a)
-        n /= np.linalg.norm(n, axis=1, keepdims=True)
-        n *= np.sign(np.einsum("ij,ij->i", n, a - v.mean(axis=0)))[:, None]  # outwards
-        sd = np.einsum("pfj,fj->pf", q[:, None, :] - a[None], n).max(axis=1)
-        return np.asarray(np.abs(sd))
-    raise TypeError(f"no distance for {type(prim).__name__}")
-
-
 def part_distance(scene: Scene, p: FloatArray) -> FloatArray:
     """Distance (m) of part-frame points from the nearest table-mounted surface."""
     prims = [x for x in scene.primitives if x.mount == "table"]
     out = np.full(p.shape[0], np.inf)
     for a in range(0, p.shape[0], 200_000):
         blk = p[a : a + 200_000]
-        out[a : a + blk.shape[0]] = np.min([_primitive_distance(x, blk) for x in prims], axis=0)
+        out[a : a + blk.shape[0]] = np.min(
+            [np.abs(primitive_signed_distance(x, blk)) for x in prims], axis=0
+        )
     return out
 
 
