@@ -18,6 +18,7 @@ if TYPE_CHECKING:
     from wristscan.calib.handeye_uncertainty import Jackknife, VarianceComponents
 
 __all__ = [
+    "CovarianceSigmas",
     "HandEyeResult",
     "Identifiability",
     "OrientationSolution",
@@ -113,8 +114,25 @@ class Sweep:
         return Sweep(self.flange2base, self.points_sensor[m], self.pose_index[m])
 
 
+class CovarianceSigmas:
+    """The 1-sigma uncertainties of a ``cov`` in :class:`HandEyeResult`'s order (rotation
+    increments about the sensor axes, rad, then the sensor origin, m)."""
+
+    cov: FloatArray
+
+    @property
+    def sigma_rotation_rad(self) -> FloatArray:
+        """1-sigma rotation uncertainty about the sensor X, Y, Z axes (radians)."""
+        return np.sqrt(np.clip(np.diag(self.cov)[:3], 0.0, None))
+
+    @property
+    def sigma_translation_m(self) -> FloatArray:
+        """1-sigma uncertainty of the sensor origin along flange X, Y, Z (metres)."""
+        return np.sqrt(np.clip(np.diag(self.cov)[3:6], 0.0, None))
+
+
 @dataclass(frozen=True, eq=False)
-class HandEyeResult:
+class HandEyeResult(CovarianceSigmas):
     """A sensor-to-flange calibration.
 
     ``cov`` is ``(6, 6)`` in the order ``[w_x, w_y, w_z (rad, about sensor axes), t_x, t_y, t_z
@@ -147,16 +165,6 @@ class HandEyeResult:
     point_sigma_m: float = float("nan")
     point_sigma_rms_m: float = float("nan")
     working_volume_m: tuple[tuple[float, float], tuple[float, float]] | None = None
-
-    @property
-    def sigma_rotation_rad(self) -> FloatArray:
-        """1-sigma rotation uncertainty about the sensor X, Y, Z axes (radians)."""
-        return np.sqrt(np.clip(np.diag(self.cov)[:3], 0.0, None))
-
-    @property
-    def sigma_translation_m(self) -> FloatArray:
-        """1-sigma uncertainty of the sensor origin along flange X, Y, Z (metres)."""
-        return np.sqrt(np.clip(np.diag(self.cov)[3:6], 0.0, None))
 
     def as_ur_pose(self) -> FloatArray:
         """The TCP as a UR pose ``p[x, y, z, rx, ry, rz]`` (metres, rotation vector)."""

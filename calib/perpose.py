@@ -54,6 +54,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from wristscan.calib import se3, sphere
 from wristscan.calib.handeye import HandEyeResult, PoorlyConstrained, Sweep, refine
+from wristscan.calib.handeye_model import CovarianceSigmas
 from wristscan.calib.perpose_closed import (
     CIRCLE_RADIUS_SLACK,
     MIN_POSES,
@@ -167,7 +168,7 @@ class PerPoseResult:
 
 
 @dataclass(frozen=True, eq=False)
-class Jackknife:
+class Jackknife(CovarianceSigmas):
     """Leave-one-pose-out estimates and the jackknife covariance (order of
     ``HandEyeResult.cov``: rotation increments about the sensor axes (rad), then the sensor
     origin (m))."""
@@ -177,14 +178,6 @@ class Jackknife:
     cov: FloatArray
     translation_dev_m: FloatArray
     rotation_dev_rad: FloatArray
-
-    @property
-    def sigma_rotation_rad(self) -> FloatArray:
-        return np.sqrt(np.clip(np.diag(self.cov)[:3], 0.0, None))
-
-    @property
-    def sigma_translation_m(self) -> FloatArray:
-        return np.sqrt(np.clip(np.diag(self.cov)[3:6], 0.0, None))
 
 
 # --------------------------------------------------------------------------------------------
