@@ -31,26 +31,15 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 sys.path.insert(0, str(Path(__file__).parents[1] / "tests"))
 from _report import Figure, report
-from support import TRUE_POSES_ONLY
+from support import TRUE_POSES_ONLY, ur5e_working_q
 
 from wristscan.calib import kinematic_errors as kerr
 
 ROOT = Path(__file__).resolve().parents[1]
-WORK_Q = np.array(
-    [
-        [0.3, -1.9, 1.9, -1.57, -1.57, 0.2],
-        [-0.4, -1.5, 1.6, -1.9, -1.4, 1.0],
-        [0.8, -2.2, 2.0, -1.2, -1.8, -0.6],
-        [0.0, -1.2, 1.3, -2.2, -1.0, 0.4],
-        [-0.9, -1.7, 2.3, -1.5, -2.0, 2.0],
-        [1.2, -1.4, 1.1, -1.0, -1.6, -1.5],
-    ]
-)
 
 
 def error_model_figures() -> list[Figure]:
-    rng = np.random.default_rng(1)
-    q = WORK_Q[rng.integers(0, len(WORK_Q), 400)] + rng.normal(0.0, 0.25, (400, 6))
+    q = ur5e_working_q(400, seed=1)
     pos: dict[str, list[float]] = {"none": [], "partial": [], "exact": []}
     ang: list[float] = []
     for seed in range(200):

@@ -157,6 +157,26 @@ def tcp_peers_of_this_process() -> list[tuple[str, int]]:
     return peers
 
 
+UR5E_WORK_Q = np.array(
+    [
+        [0.3, -1.9, 1.9, -1.57, -1.57, 0.2],
+        [-0.4, -1.5, 1.6, -1.9, -1.4, 1.0],
+        [0.8, -2.2, 2.0, -1.2, -1.8, -0.6],
+        [0.0, -1.2, 1.3, -2.2, -1.0, 0.4],
+        [-0.9, -1.7, 2.3, -1.5, -2.0, 2.0],
+        [1.2, -1.4, 1.1, -1.0, -1.6, -1.5],
+    ]
+)
+"""UR5e joint positions (rad) in front of the robot, where a sensor on the flange would scan."""
+
+
+def ur5e_working_q(n: int, seed: int) -> NDArray[np.float64]:
+    """``n`` joint positions scattered (0.25 rad) around :data:`UR5E_WORK_Q`, seeded."""
+    rng = np.random.default_rng(seed)
+    base = UR5E_WORK_Q[rng.integers(0, len(UR5E_WORK_Q), n)]
+    return np.asarray(base + rng.normal(0.0, 0.25, base.shape))
+
+
 TRUE_POSES_ONLY: dict[str, float] = {"truth_wait_s": 1.5, "max_lag_s": 1.0}
 """Simulated-sensor settings (``start_cell(cfg, **TRUE_POSES_ONLY)``, or a scenario's sensor
 overrides) for a test that compares what the cell measured with the simulator's truth. By default

@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 import rtde_receive
 from pydantic import ValidationError
+from support import UR5E_WORK_Q, ur5e_working_q
 
 from wristscan.calib import kinematic_errors as kerr
 from wristscan.calib import kinematics, se3
@@ -35,26 +36,6 @@ from wristscan.drivers.ur.primary import read_kinematics_info
 pytestmark = pytest.mark.timeout(180)
 
 UR5E = kinematics.get_model("UR5e")
-# Joint positions in front of the robot, where a sensor on the flange would scan a part.
-WORK_Q = np.array(
-    [
-        [0.3, -1.9, 1.9, -1.57, -1.57, 0.2],
-        [-0.4, -1.5, 1.6, -1.9, -1.4, 1.0],
-        [0.8, -2.2, 2.0, -1.2, -1.8, -0.6],
-        [0.0, -1.2, 1.3, -2.2, -1.0, 0.4],
-        [-0.9, -1.7, 2.3, -1.5, -2.0, 2.0],
-        [1.2, -1.4, 1.1, -1.0, -1.6, -1.5],
-    ]
-)
-
-
-def _working_q(n: int, seed: int) -> np.ndarray:
-    """``n`` joint positions scattered around :data:`WORK_Q`."""
-    rng = np.random.default_rng(seed)
-    base = WORK_Q[rng.integers(0, len(WORK_Q), n)]
-    return np.asarray(base + rng.normal(0.0, 0.25, base.shape))
-
-
 # ------------------------------------------------------------------------------ the error model
 
 
@@ -78,7 +59,7 @@ def test_true_model_is_seeded_and_of_the_configured_size() -> None:
 
 
 def test_realistic_arm_misses_the_nominal_pose_by_a_real_arms_error() -> None:
-    q = _working_q(400, seed=1)
+    q = ur5e_working_q(400, seed=1)
     for seed in range(5):
         none = kerr.RobotErrorModel("UR5e", kerr.REALISTIC, seed, factory="none")
         partial = kerr.RobotErrorModel("UR5e", kerr.REALISTIC, seed, factory="partial")
@@ -96,7 +77,7 @@ def test_observe_applies_encoder_noise_and_repeatability_of_their_size() -> None
     arm = kerr.RobotErrorModel(
         "UR5e", kerr.REALISTIC, 3, factory="exact", joint_noise_rad=2e-5, repeatability_m=5e-5
     )
-    q = _working_q(4000, seed=2)
+    q = ur5e_working_q(4000, seed=2)
     obs = arm.observe(q, rng=9)
     noise = obs.q_reported - q
     assert noise.std() == pytest.approx(2e-5, rel=0.05)
@@ -162,10 +143,12 @@ def test_sim_controller_section_builds_the_cell() -> None:
     # The true flange at an instant: the true model at the ring's true joints.
     bare.robot_ring = TruthRing.create(width=6, capacity=16)
     try:
-        bare.robot_ring.append(1_000, WORK_Q[0])
-        bare.robot_ring.append(2_000, WORK_Q[1])
+        bare.robot_ring.append(1_000, UR5E_WORK_Q[0])
+        bare.robot_ring.append(2_000, UR5E_WORK_Q[1])
         T = bare.true_flange2base([1_500, 5_000])
-        mid = kinematics.forward(bare.spec.controller.true_model, (WORK_Q[0] + WORK_Q[1]) / 2)
+        mid = kinematics.forward(
+            bare.spec.controller.true_model, (UR5E_WORK_Q[0] + UR5E_WORK_Q[1]) / 2
+        )
         assert np.allclose(T[0], mid, rtol=0, atol=1e-12) and np.isnan(T[1, :3]).all()
     finally:
         bare.robot_ring.close()
@@ -180,7 +163,7 @@ def test_sim_controller_section_builds_the_cell() -> None:
 
 @contextmanager
 def controller(**overrides: Any) -> Iterator[SimulatedController]:
-    cfg = ControllerConfig(primary_interface=True, initial_q=tuple(WORK_Q[0]), **overrides)
+    cfg = ControllerConfig(primary_interface=True, initial_q=tuple(UR5E_WORK_Q[0]), **overrides)
     with SimulatedController.on_free_loopback(cfg) as sim:
         yield sim
 
@@ -213,7 +196,7 @@ def _factory_pose_errors(sim: SimulatedController, qs: np.ndarray) -> np.ndarray
 
 
 def test_factory_calibration_none_partial_exact() -> None:
-    qs = _working_q(8, seed=5)
+    qs = ur5e_working_q(8, seed=5)
     errors = {}
     for factory in ("none", "partial", "exact"):
         with controller(
@@ -250,7 +233,7 @@ def test_encoder_noise_and_repeatability_have_their_sizes() -> None:
         # Repeatability: each placement lands the true TCP off the commanded one, by ~1e-4 RMS.
         true_model = sim.config.true_model
         offsets = []
-        for s in _states_at(sim, _working_q(40, seed=6)):
+        for s in _states_at(sim, ur5e_working_q(40, seed=6)):
             T = kinematics.forward(true_model, np.asarray(s["q"]))
             offsets.append(np.asarray(s["tcp_pose_true"])[:3] - T[:3, 3])
         rms = float(np.sqrt(np.mean(np.sum(np.square(offsets), axis=1))))
