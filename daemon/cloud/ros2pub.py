@@ -22,7 +22,6 @@ leading slash, CDR payload, no attachment or tokens (the bridge makes its own).
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import struct
 import threading
@@ -31,6 +30,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import xxhash
 import zenoh
 from numpy.typing import NDArray
 from rosbags.typesys import Stores
@@ -124,9 +124,10 @@ def attachment(seq: int, source_timestamp_ns: int, gid: bytes) -> bytes:
 
 
 def gid_of(token_key: str) -> bytes:
-    """16 bytes that identify a publisher, from its liveliness key (rmw_zenoh hashes the same
-    key with XXH3-128; subscribers only carry the GID, they do not recompute it)."""
-    return hashlib.blake2b(token_key.encode(), digest_size=_GID_SIZE).digest()
+    """The publisher's GID as rmw_zenoh makes it (``liveliness_utils.cpp``, ``Entity``): XXH3-128
+    (seed 0) of the entity's whole liveliness key, its low 64 bits then its high 64 bits, each
+    little-endian; so ``ros2 topic info -v`` and the attachment name the same publisher."""
+    return int(xxhash.xxh3_128_intdigest(token_key.encode())).to_bytes(_GID_SIZE, "little")
 
 
 class _Endpoint:

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import xxhash
 import pytest
 import zenoh
 import zenoh.ext
@@ -216,7 +217,11 @@ def test_rmw_zenoh_publication_reaches_a_plain_subscriber(endpoint: str) -> None
             if s.attachment is not None
         ]
         assert seq >= 1 and seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
-        assert t_pub <= stamp <= time.time_ns() and len(gid) == 16
+        assert t_pub <= stamp <= time.time_ns()
+        # rmw_zenoh's GID: XXH3-128 of the publisher's liveliness key, low then high 64 bits LE
+        cloud_token = next(t for t in tokens if "/0/1/MP/" in t)
+        assert gid == xxhash.xxh3_128_intdigest(cloud_token.encode()).to_bytes(16, "little")
+        assert gid == xxhash.xxh3_128(cloud_token.encode()).digest()[::-1]  # canonical is BE
         # /tf_static: the flange -> sensor transform, published at start-up (transient local)
         s2f = np.eye(4)
         s2f[:3, 3] = [0.01, -0.02, 0.15]
