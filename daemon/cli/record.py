@@ -10,6 +10,7 @@ at all, also when the recording is stopped with Ctrl-C or SIGTERM.
 
 from __future__ import annotations
 
+import math
 import sys
 import threading
 import time
@@ -37,11 +38,15 @@ if TYPE_CHECKING:
     from numpy.typing import NDArray
 
     from wristscan.daemon.cloud.client import CloudClient
+    from wristscan.daemon.cloud.poses import PoseSubscriber
     from wristscan.daemon.cloud.wsc1 import Cloud
+    from wristscan.daemon.cloud.wsp1 import PoseBatch
     from wristscan.daemon.io.cloudfile import BatchSink
     from wristscan.daemon.io.ply import PlyStreamWriter
 RING_CAPACITY = 64
 """Batches the subscriber holds while the file is being written (then the oldest are lost)."""
+_POSE_BACKLOG = 256
+"""Pose messages kept while their batch has not arrived."""
 
 
 @dataclass
@@ -205,10 +210,50 @@ class _NpzSink:
 
 
 class _BatchSinkAdapter:
-    """A :class:`BatchSink` (MCAP, E57) fed with received clouds."""
+    """A :class:`BatchSink` (MCAP, E57) fed with received clouds and, for MCAP, the robot
+    poses of their profiles (``<prefix>/pose``): one flange and one sensor pose per batch
+    recorded, written when both its cloud and its pose message have arrived."""
 
     def __init__(self, sink: BatchSink) -> None:
         self.sink = sink
+        self.seqs: tuple[int, int] | None = None
+        """The first and the last sequence number recorded."""
+        self.pending: dict[int, PoseBatch] = {}
+        self.poses = 0
+        self.seq_written: int | None = None
+
+    @property
+    def takes_poses(self) -> bool:
+        return self.sink.takes_poses
+
+    def add_poses(self, batches: list[PoseBatch]) -> None:
+        """Write the poses of recorded batches; keep those of batches still to come."""
+        for b in batches:
+            self.pending[b.seq] = b
+        if self.seqs is None:
+            return
+        first, last = self.seqs
+        for seq in sorted(self.pending):
+            if seq > last:
+                break
+            b = self.pending.pop(seq)
+            if seq >= first and b.n_poses:
+                self.sink.add_pose(int(b.t_ns[0]), b.flange2base[0], b.sensor2frame[0], b.frame_id)
+                self.poses += 1
+                self.seq_written = seq
+        while len(self.pending) > _POSE_BACKLOG:  # a daemon restarted: its numbers start over
+            self.pending.pop(min(self.pending))
+
+    def last_poses(self, poses: PoseSubscriber, wait_s: float = 0.5) -> None:
+        """The pose of the last batch follows it on the wire: wait for it briefly."""
+        deadline = time.monotonic() + wait_s
+        while True:
+            self.add_poses(poses.drain())
+            if self.seqs is None or self.seq_written == self.seqs[1]:
+                return
+            if time.monotonic() > deadline:
+                return
+            time.sleep(0.02)
 
     @property
     def intensity_mismatch(self) -> int:
@@ -220,6 +265,8 @@ class _BatchSinkAdapter:
         inten = None if cloud.intensity is None else cloud.intensity[:take]
         batch = Batch(cloud.xyz[:take], cloud.t_first_ns, cloud.t_last_ns, cloud.frame_id, inten)
         self.sink.add_batch(batch)
+        first = cloud.seq if self.seqs is None or cloud.seq < self.seqs[0] else self.seqs[0]
+        self.seqs = (first, cloud.seq)
 
     def close(self, tally: _Tally) -> Path:
         return self.sink.finish()
@@ -242,7 +289,23 @@ def _open_sink(out: Path, ascii: bool, prefix: str, time: bool) -> _Sink:
     return _BatchSinkAdapter(open_batch_sink(out, fmt, f"{prefix}/cloud"))
 
 
-def _check_out(out: Path, ascii: bool, point_time: bool) -> None:
+def _pose_subscriber(client: CloudClient, out: Path) -> PoseSubscriber | None:
+    """The daemon's robot poses, for the format that records them (MCAP); subscribed with the
+    clouds, so the batches waiting in the client's ring find their poses."""
+    from wristscan.daemon.cloud.poses import PoseSubscriber
+    from wristscan.daemon.io.cloudfile import cloud_format
+
+    if cloud_format(out) != "mcap":
+        return None
+
+    return PoseSubscriber(client.session, client.prefix)
+
+
+def _check_options(
+    out: Path, ascii: bool, point_time: bool, force: bool, duration: float | None
+) -> None:
+    if duration is not None and not (math.isfinite(duration) and duration > 0):
+        fail(f"--duration must be a number of seconds > 0, got {duration}", EXIT_USAGE)
     from wristscan.daemon.io.cloudfile import FORMATS, CloudFormatError, cloud_format
 
     if out.suffix.lower() not in FORMATS:
@@ -262,6 +325,8 @@ def _check_out(out: Path, ascii: bool, point_time: bool) -> None:
         fail(f"--out {str(out)!r} is a folder", EXIT_USAGE)
     if not out.parent.is_dir():
         fail(f"the folder of --out does not exist: {str(out.parent)!r}", EXIT_USAGE)
+    if out.exists() and not force:
+        fail(f"--out {str(out)!r} exists; use --force to replace it", EXIT_USAGE)
 
 
 def record(
@@ -294,6 +359,9 @@ def record(
             "which CloudCompare shows as the scalar field 'time'.",
         ),
     ] = False,
+    force: Annotated[
+        bool, typer.Option("--force", help="Replace --out when it exists (refused otherwise).")
+    ] = False,
     timeout: TimeoutOpt = 5.0,
     progress: Annotated[
         bool | None,
@@ -305,12 +373,11 @@ def record(
     ] = None,
 ) -> None:
     """Record the daemon's point clouds to a file until --duration, --points or Ctrl-C."""
-    _check_out(out, ascii, point_time)
-    if duration is not None and duration <= 0:
-        fail("--duration must be > 0 seconds", EXIT_USAGE)
+    _check_options(out, ascii, point_time, force, duration)
     target = resolve_target(config, prefix, connect, mode)
     with stop_on_signals() as stop:
         client = open_client(target, capacity=RING_CAPACITY)
+        poses = _pose_subscriber(client, out)
         try:
             if not wait_alive(client, timeout, stop):
                 no_answer(target, timeout, stop)
@@ -327,15 +394,19 @@ def record(
             )
             t0 = time.monotonic()
             try:
-                reason = _receive(client, sink, tally, bar, stop, t0, duration, points)
+                reason = _receive(client, sink, tally, bar, stop, t0, duration, points, poses)
                 elapsed = time.monotonic() - t0
                 bar.close()
+                if poses is not None and isinstance(sink, _BatchSinkAdapter):
+                    sink.last_poses(poses)
                 path = sink.close(tally)
             except BaseException:
                 bar.close()
                 sink.abort()
                 raise
         finally:
+            if poses is not None:
+                poses.close()
             client.close()
     _summary(path, tally, client.dropped, client.malformed, elapsed, reason, sink)
 
@@ -349,9 +420,13 @@ def _receive(
     t0: float,
     duration: float | None,
     points: int | None,
+    poses: PoseSubscriber | None = None,
 ) -> str:
-    """Write the clouds received into ``sink`` until a limit or a signal; what ended it."""
+    """Write the clouds received into ``sink`` (and with ``poses`` their robot poses) until a
+    limit or a signal; what ended it."""
     while not stop.is_set():
+        if poses is not None and isinstance(sink, _BatchSinkAdapter):
+            sink.add_poses(poses.drain())
         wait = 0.1
         if duration is not None:
             left = duration - (time.monotonic() - t0)
@@ -393,12 +468,23 @@ def _summary(
         ("lost", lost),
         ("malformed", str(malformed)),
         ("frame", ", ".join(tally.frames) or "-"),
+        *(
+            [("poses", f"{sink.poses} (flange and sensor, one per batch)")]
+            if isinstance(sink, _BatchSinkAdapter) and sink.takes_poses
+            else []
+        ),
         ("duration", f"{elapsed:.2f} s"),
         ("stopped", reason),
     ]
     typer.echo("\n".join(table(rows, indent="")))
     if tally.batches == 0:
         typer.echo("warning: no cloud was received; the file is empty", err=True)
+    elif isinstance(sink, _BatchSinkAdapter) and sink.takes_poses and sink.poses == 0:
+        typer.echo(
+            "warning: no robot pose arrived on <prefix>/pose (a daemon before 0.2 publishes "
+            "none); the file holds the clouds only",
+            err=True,
+        )
     if len(tally.frames) > 1:
         typer.echo(
             f"warning: batches came in several frames ({', '.join(tally.frames)}); "

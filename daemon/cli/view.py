@@ -1,7 +1,8 @@
 """``wristscan view``: watch a running daemon's clouds in rerun (extra ``view``): the live cloud,
-the laser's trail and the calibration in force (:mod:`wristscan.daemon.view.live` says what is
-drawn and why). ``--record FILE.rrd`` saves the recording to a file instead of spawning the
-viewer (headless use; open it later with ``rerun FILE.rrd``).
+the laser's and the flange's trails, the sensor's pose and the calibration in force
+(:mod:`wristscan.daemon.view.live` says what is drawn and why). ``--record FILE.rrd`` saves the
+recording to a file instead of spawning the viewer (headless use; open it later with
+``rerun FILE.rrd``).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from wristscan.daemon.cli._remote import (
     resolve_target,
     wait_alive,
 )
+from wristscan.daemon.cloud.poses import PoseSubscriber
 
 if TYPE_CHECKING:
     from wristscan.daemon.cloud.client import CloudClient
@@ -57,11 +59,17 @@ def _sink(rec: Any, record: Path | None) -> None:
 
 
 def _watch(
-    client: CloudClient, live: LiveView, stop: threading.Event, seconds: float | None
+    client: CloudClient,
+    live: LiveView,
+    stop: threading.Event,
+    seconds: float | None,
+    poses: PoseSubscriber,
 ) -> str:
-    """Log batches until ``seconds`` or a signal; what ended it."""
+    """Log batches and robot poses until ``seconds`` or a signal; what ended it."""
     t0 = time.monotonic()
     while not stop.is_set():
+        for batch in poses.drain():
+            live.pose(batch)
         wait = 0.1
         if seconds is not None:
             left = seconds - (time.monotonic() - t0)
@@ -101,8 +109,8 @@ def view(
     mode: ModeOpt = None,
     timeout: TimeoutOpt = 10.0,
 ) -> None:
-    """Show a running daemon's live cloud, laser trail and calibration in rerun (the viewer is
-    spawned unless --record saves to a file)."""
+    """Show a running daemon's live cloud, laser and flange trails, sensor pose and
+    calibration in rerun (the viewer is spawned unless --record saves to a file)."""
     if seconds is not None and seconds <= 0:
         fail("--seconds must be > 0", EXIT_USAGE)
     target = resolve_target(config, prefix, connect, mode)
@@ -111,6 +119,7 @@ def view(
 
     with stop_on_signals() as stop:
         client = open_client(target, capacity=RING_CAPACITY)
+        poses = PoseSubscriber(client.session, client.prefix)
         try:
             if not wait_alive(client, timeout, stop):
                 no_answer(target, timeout, stop)
@@ -124,10 +133,11 @@ def view(
             where = f"to {record}" if record is not None else "in the rerun viewer"
             typer.echo(f"viewing {target.prefix}/cloud {where} (Ctrl-C to stop)", err=True)
             t0 = time.monotonic()
-            reason = _watch(client, live, stop, seconds)
+            reason = _watch(client, live, stop, seconds, poses)
             live.log_trail()
             elapsed = time.monotonic() - t0
         finally:
+            poses.close()
             client.close()
             rec.flush()
             rec.disconnect()
@@ -136,6 +146,7 @@ def view(
         ("points", str(live.points)),
         ("stride", f"every {stride}th point logged" if stride > 1 else "every point logged"),
         ("batches", str(live.batches)),
+        ("poses", f"{live.poses} batches' robot poses"),
         ("dropped", f"{client.dropped} batches (the viewer was too slow)"),
         ("sensor", "calibration shown" if has_sensor else "no sensor transform"),
         ("duration", f"{elapsed:.2f} s"),

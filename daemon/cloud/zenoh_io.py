@@ -3,6 +3,7 @@
 | key | what |
 |---|---|
 | ``<prefix>/cloud`` | aligned point batches, WSC1, encoding ``application/octet-stream;wsc1`` |
+| ``<prefix>/pose`` | the robot pose of every profile of each batch, WSP1 (``wsp1``), same ``seq`` |
 | ``<prefix>/status`` | JSON health/status, published periodically |
 | ``<prefix>/alive`` | liveliness token while the daemon runs |
 | ``<prefix>/calibration`` | queryable: the calibration in force, JSON |
@@ -20,7 +21,7 @@ import numpy as np
 import zenoh
 from numpy.typing import NDArray
 
-from wristscan.daemon.cloud import wsc1
+from wristscan.daemon.cloud import wsc1, wsp1
 
 __all__ = ["DaemonZenoh", "open_session", "session_config"]
 
@@ -74,6 +75,9 @@ class DaemonZenoh:
             f"{self.prefix}/cloud",
             encoding=zenoh.Encoding(wsc1.ENCODING),
             congestion_control=cc,
+        )
+        self._pose = session.declare_publisher(
+            f"{self.prefix}/pose", encoding=zenoh.Encoding(wsp1.ENCODING), congestion_control=cc
         )
         self._status = session.declare_publisher(
             f"{self.prefix}/status", encoding=zenoh.Encoding("application/json")
@@ -139,6 +143,18 @@ class DaemonZenoh:
         self.published += 1
         return self.seq - 1
 
+    def publish_pose(
+        self,
+        seq: int,
+        frame_id: str,
+        t_ns: NDArray[np.integer],
+        flange2base: NDArray[np.floating],
+        sensor2frame: NDArray[np.floating],
+    ) -> None:
+        """The poses of batch ``seq``'s profiles (WSP1): exposure UTC ns (P,), flange in base and
+        sensor in ``frame_id`` (P, 4, 4), metres."""
+        self._pose.put(wsp1.encode(seq, frame_id, t_ns, flange2base, sensor2frame))
+
     def publish_status(self, status: dict[str, Any]) -> None:
         self._status.put(json.dumps(status))
 
@@ -150,4 +166,5 @@ class DaemonZenoh:
             q.undeclare()
         self._token.undeclare()
         self._cloud.undeclare()
+        self._pose.undeclare()
         self._status.undeclare()

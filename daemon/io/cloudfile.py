@@ -89,8 +89,18 @@ class Batch:
 
 class BatchSink(Protocol):
     intensity_mismatch: int
+    takes_poses: bool
+    """Whether the format records robot poses (``add_pose``)."""
 
     def add_batch(self, batch: Batch) -> None: ...
+
+    def add_pose(
+        self,
+        stamp_ns: int,
+        flange2base: NDArray[np.float64],
+        sensor2frame: NDArray[np.float64],
+        frame_id: str,
+    ) -> None: ...
 
     def finish(self) -> Path: ...
 
@@ -103,11 +113,25 @@ class _McapSink:
 
         self.writer = McapCloudWriter(path, metadata=metadata)
         self.intensity_mismatch = 0
+        self.takes_poses = True
 
     def add_batch(self, batch: Batch) -> None:
         self.writer.write_cloud(batch.xyz, batch.t_first_ns, batch.frame_id, batch.intensity)
         if batch.flange2base is not None:
             self.writer.write_pose(batch.flange2base, batch.t_first_ns)
+
+    def add_pose(
+        self,
+        stamp_ns: int,
+        flange2base: NDArray[np.float64],
+        sensor2frame: NDArray[np.float64],
+        frame_id: str,
+    ) -> None:
+        """The flange in the base frame and the sensor in ``frame_id`` at ``stamp_ns``."""
+        from wristscan.daemon.io.mcap_out import SENSOR_POSE_TOPIC
+
+        self.writer.write_pose(flange2base, stamp_ns)
+        self.writer.write_pose(sensor2frame, stamp_ns, frame_id, SENSOR_POSE_TOPIC)
 
     def finish(self) -> Path:
         return self.writer.close()
@@ -129,6 +153,7 @@ class _E57Sink:
         self.spool: SpooledScan | None = None
         self._spool_t = SpooledScan
         self.intensity_mismatch = 0
+        self.takes_poses = False
         self.t_first_ns: int | None = None
         self.t_last_ns: int | None = None
 
@@ -144,6 +169,15 @@ class _E57Sink:
         if self.t_first_ns is None:
             self.t_first_ns = batch.t_first_ns
         self.t_last_ns = batch.t_last_ns
+
+    def add_pose(
+        self,
+        stamp_ns: int,
+        flange2base: NDArray[np.float64],
+        sensor2frame: NDArray[np.float64],
+        frame_id: str,
+    ) -> None:
+        """Not recorded: the recording is one scan in the frame of its points."""
 
     def finish(self) -> Path:
         try:

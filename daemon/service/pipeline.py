@@ -35,6 +35,11 @@ from wristscan.daemon.sync.pairing import Pairer
 from wristscan.drivers.base import Device, DriverError
 from wristscan.drivers.records import Profile, RobotState, TableState
 
+PosePublisher = Callable[
+    [int, str, NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]], None
+]
+"""(seq, frame, exposure UTC ns (P,), flange2base (P, 4, 4), sensor2frame (P, 4, 4))."""
+
 __all__ = ["AlignmentSetup", "Pipeline", "PipelineSettings"]
 
 log = logging.getLogger(__name__)
@@ -99,16 +104,19 @@ class Pipeline:
         settings: PipelineSettings | None = None,
         publish_status: Callable[[dict[str, Any]], None] | None = None,
         on_batch: Callable[[PairedBatch], None] | None = None,
+        publish_pose: PosePublisher | None = None,
     ) -> None:
-        """``publish`` receives aligned batches (``DaemonZenoh.publish_cloud``'s signature);
-        ``on_batch`` receives every paired batch before alignment (calibration procedures
-        record them). Either may be None."""
+        """``publish`` receives aligned batches (``DaemonZenoh.publish_cloud``'s signature) and
+        returns their sequence number; ``publish_pose`` the robot pose of each of their profiles
+        (``DaemonZenoh.publish_pose``); ``on_batch`` receives every paired batch before
+        alignment (calibration procedures record them). Any may be None."""
         self.settings = settings or PipelineSettings()
         self.sensor, self.robot, self.table = sensor, robot, table
         self.pairer = pairer
         self._setup = setup
         self._publish = publish
         self._publish_status = publish_status
+        self._publish_pose = publish_pose
         self._on_batch = on_batch
         s = self.settings
         self._profiles: deque[Profile] = deque()
@@ -396,18 +404,15 @@ class Pipeline:
         frame = setup.frame
         s = self.settings
         with self._cpu["align"]:
-            xyz = align.align(
-                batch.y,
-                batch.z,
-                batch.profile_index,
+            poses = align.sensor_poses(
                 batch.flange2base,
                 setup.sensor2flange,
                 base2table=setup.base2table if frame != "base" else None,
                 table_angle_rad=batch.table_angle if frame == "part" else None,
                 encoder_offset_rad=setup.encoder_offset_rad,
                 frame=frame,  # type: ignore[arg-type]
-                mask=valid,
             )
+            xyz = align.align_with_poses(batch.y, batch.z, batch.profile_index, poses, valid)
             intensity = (
                 batch.intensity[valid]
                 if s.publish_intensity and batch.intensity is not None
@@ -417,7 +422,10 @@ class Pipeline:
         t_first = int(batch.exposure_ns.min()) + self._utc_offset_ns
         t_last = int(batch.exposure_ns.max()) + self._utc_offset_ns
         with self._cpu["publish"]:
-            self._publish(xyz, t_first, t_last, batch.n_profiles, frame, intensity, pidx)
+            seq = self._publish(xyz, t_first, t_last, batch.n_profiles, frame, intensity, pidx)
+            if self._publish_pose is not None:
+                t_ns = batch.exposure_ns.astype(np.int64) + self._utc_offset_ns
+                self._publish_pose(seq, frame, t_ns, batch.flange2base, poses)
         if batch.arrival_ns is not None:
             self.latency.add(
                 batch.exposure_ns, batch.arrival_ns, self._tick_ns, time.monotonic_ns()

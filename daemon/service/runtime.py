@@ -159,6 +159,7 @@ class Service:
                 publish_profile_index=pl.publish_profile_index,
             ),
             publish_status=face.publish_status,
+            publish_pose=face.publish_pose,
         )
         # What start-up built (modules, devices, sessions) lives as long as the service: out of
         # the collector's way, a full collection scans only what the pipeline makes.

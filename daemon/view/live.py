@@ -6,14 +6,17 @@ What is shown comes only from what the daemon publishes over zenoh (DESIGN.md, z
   by intensity when the batch carries it); from ``<prefix>/cloud`` (WSC1);
 - ``world/laser_trail``: the path of the laser line, the centroid of each batch as a line;
   from ``<prefix>/cloud``;
+- ``world/sensor``: the sensor's pose in the frame of the clouds (axes), at each batch's last
+  profile; from ``<prefix>/pose`` (WSP1);
+- ``world/flange_trail``: the path of the robot's flange in the frame of the clouds, one point
+  per batch (in the table and part frames only once the calibration is known); from
+  ``<prefix>/pose``;
 - ``calibration/flange/sensor``: the sensor frame relative to the flange (axes), the
   calibration in force; from ``<prefix>/calibration``;
 - ``calibration``: the calibration document (JSON text); from ``<prefix>/calibration``.
 
-The WSC1 stream carries no robot pose, so neither the sensor's pose in the world nor the
-flange's trail can be drawn from it; the laser trail is what the cloud itself tells about the
-motion. Timelines: ``exposure`` (the batch's first profile, UTC) and ``seq`` (its sequence
-number).
+Timelines: ``exposure`` (the batch's first profile, UTC; a pose at its own profile's exposure)
+and ``seq`` (the batch's sequence number).
 """
 
 from __future__ import annotations
@@ -25,7 +28,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from wristscan.calib import se3
 from wristscan.daemon.cloud.wsc1 import Cloud
+from wristscan.daemon.cloud.wsp1 import PoseBatch
 
 __all__ = ["APP_ID", "LiveView", "ViewUnavailable", "height_colours", "new_recording"]
 
@@ -89,6 +94,9 @@ class LiveView:
         self.points = 0
         self.z_range: tuple[float, float] | None = None
         self.trail: deque[NDArray[np.float64]] = deque(maxlen=trail_batches)
+        self.flange_trail: deque[NDArray[np.float64]] = deque(maxlen=trail_batches)
+        self.poses = 0
+        self.sensor2flange: NDArray[np.float64] | None = None
         self.trail_every = trail_every
         self.stride = max(1, stride)
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
@@ -104,6 +112,7 @@ class LiveView:
         m = _matrix(doc)
         if m is None:
             return False
+        self.sensor2flange = m
         self.rec.log(
             "calibration/flange/sensor",
             rr.Transform3D(translation=m[:3, 3], mat3x3=m[:3, :3]),
@@ -141,3 +150,34 @@ class LiveView:
     def log_trail(self) -> None:
         if len(self.trail) >= 2:
             self.rec.log("world/laser_trail", self.rr.LineStrips3D([np.array(self.trail)]))
+        if len(self.flange_trail) >= 2:
+            self.rec.log("world/flange_trail", self.rr.LineStrips3D([np.array(self.flange_trail)]))
+
+    def pose(self, batch: PoseBatch) -> None:
+        """Log the sensor where the batch's last profile saw from and extend the flange trail."""
+        if batch.n_poses == 0:
+            return
+        rr = self.rr
+        self.rec.set_time("exposure", timestamp=np.datetime64(int(batch.t_ns[-1]), "ns"))
+        self.rec.set_time("seq", sequence=batch.seq)
+        s = batch.sensor2frame[-1]
+        self.rec.log(
+            "world/sensor",
+            rr.Transform3D(translation=s[:3, 3], mat3x3=s[:3, :3]),
+            rr.TransformAxes3D(0.05),
+        )
+        self.poses += 1
+        flange = self._flange_in_frame(batch)
+        if flange is not None:
+            self.flange_trail.append(flange)
+        if self.poses % self.trail_every == 0:
+            self.log_trail()
+
+    def _flange_in_frame(self, batch: PoseBatch) -> NDArray[np.float64] | None:
+        """The last profile's flange origin in the clouds' frame: the pose itself in the base
+        frame, else through the calibration (sensor in frame times flange-from-sensor)."""
+        if batch.frame_id == "base":
+            return np.array(batch.flange2base[-1, :3, 3])
+        if self.sensor2flange is None:
+            return None
+        return np.array((batch.sensor2frame[-1] @ se3.invert(self.sensor2flange))[:3, 3])

@@ -317,6 +317,9 @@ def _no_daemon(nobody: list[str], tmp_path: Path) -> None:
         (["-o", "missing/scan.ply"], "the folder of --out does not exist"),
         (["-o", "scan.ply", "--mode", "router"], "--mode must be 'peer' or 'client'"),
         (["-o", "scan.ply", "--prefix", "wristscan/*"], "--prefix must be a plain zenoh key"),
+        (["-o", "scan.ply", "-d", "nan"], "--duration must be a number of seconds > 0, got nan"),
+        (["-o", "scan.ply", "-d", "inf"], "--duration must be a number of seconds > 0, got inf"),
+        (["-o", "scan.ply", "-d", "-1"], "--duration must be a number of seconds > 0"),
     ],
 )
 def test_record_user_errors(
@@ -327,6 +330,22 @@ def test_record_user_errors(
     assert res.exit_code == 2
     assert message in res.output
     assert os.listdir(tmp_path) == []
+
+
+def test_record_never_replaces_a_file_unless_forced(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "run.mcap").write_bytes(b"a long recording")
+    args = ["record", "--connect", "tcp/127.0.0.1:9", "-o", "run.mcap", "--timeout", "0.2"]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 2
+    assert "--out 'run.mcap' exists; use --force to replace it" in res.output
+    # --force gets past the check; with no daemon to record, the old file stays as it was
+    res = CliRunner().invoke(app, [*args, "--force"])
+    assert res.exit_code == 1 and "no wristscan daemon answered" in res.output
+    assert (tmp_path / "run.mcap").read_bytes() == b"a long recording"
+    assert os.listdir(tmp_path) == ["run.mcap"]
 
 
 def test_target_from_config_file(tmp_path: Path) -> None:

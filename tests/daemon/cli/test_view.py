@@ -41,6 +41,12 @@ def batch_xyz(seq: int) -> np.ndarray:
     return xyz
 
 
+def batch_flange(seq: int) -> np.ndarray:
+    """The flange of the batch's 4 profiles (4, 4, 4): a line along y, one step per profile."""
+    k = 4 * seq + np.arange(4)
+    return se3.make(se3.rot_z(0.001 * k), np.stack([0.3 + 0 * k, k * 1e-4, 0.4 + 0 * k], 1))
+
+
 @pytest.fixture
 def daemon() -> Iterator[str]:
     host = own_loopback_host()
@@ -59,6 +65,9 @@ def daemon() -> Iterator[str]:
                 n_profiles=4,
                 frame_id="base",
             )
+            f2b = batch_flange(seq)
+            t = 1_700_000_000_000_000_000 + seq * 10_000_000 + np.arange(4) * 3_000_000
+            dz.publish_pose(seq, "base", t, f2b, f2b @ SENSOR2FLANGE)
             stop.wait(0.01)
 
     thread = threading.Thread(target=publish, name="test-publisher")
@@ -112,6 +121,22 @@ def test_view_records_the_live_cloud_and_the_calibration(daemon: str, tmp_path: 
     np.testing.assert_allclose(translation, SENSOR2FLANGE[:3, 3], atol=1e-6)
     np.testing.assert_allclose(mat.T, SENSOR2FLANGE[:3, :3], atol=1e-6)  # rerun: column-major
     assert "/world/laser_trail" in ent
+    # the robot's pose stream: the flange trail holds each batch's last flange position, in
+    # order; the sensor sits where flange and calibration put it
+    strips = _column(ent["/world/flange_trail"][-1], "LineStrips3D:strips")[0].as_py()
+    trail = np.asarray(strips[0], float).reshape(-1, 3)
+    steps = np.round(trail[:, 1] / 4e-4 - 0.75).astype(int)  # the batch each point came from
+    assert len(trail) >= 10 and np.all(np.diff(steps) > 0)
+    want = np.stack([batch_flange(int(k))[-1, :3, 3] for k in steps])
+    np.testing.assert_allclose(trail, want, atol=1e-9)
+    sensor = ent["/world/sensor"][-1]
+    seq = int(sensor.column("seq")[sensor.num_rows - 1].as_py())
+    translation = np.asarray(
+        _column(sensor, "Transform3D:translation")[sensor.num_rows - 1].as_py(), float
+    ).reshape(3)
+    want_s = batch_flange(seq)[-1] @ SENSOR2FLANGE
+    np.testing.assert_allclose(translation, want_s[:3, 3], atol=1e-6)
+    assert int(summary["poses"].split()[0]) >= 20
 
 
 def test_view_refuses_a_record_file_that_is_not_rrd(tmp_path: Path) -> None:

@@ -17,8 +17,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import xxhash
 import pytest
+import xxhash
 import zenoh
 import zenoh.ext
 from rosbags.typesys import Stores, get_typestore
@@ -26,7 +26,7 @@ from scipy.spatial.transform import Rotation
 from support import free_tcp_port, own_loopback_host
 
 from wristscan.calib import kinematics, se3
-from wristscan.daemon.cloud import ros2msg, wsc1
+from wristscan.daemon.cloud import ros2msg, wsc1, wsp1
 from wristscan.daemon.cloud.ros2pub import (
     Ros2Publisher,
     attachment,
@@ -340,6 +340,7 @@ def test_daemon_on_the_sim_cell_publishes_pointcloud2_and_tf_static(tmp_path: Pa
         ros: dict[int, bytes] = {}
         wsc: dict[int, Any] = {}
         tf: list[bytes] = []
+        poses: dict[int, wsp1.PoseBatch] = {}
 
         def on_ros(s: zenoh.Sample) -> None:
             ros[ros2msg.cdr_to_cloud(s.payload.to_bytes()).stamp_ns] = s.payload.to_bytes()
@@ -348,10 +349,15 @@ def test_daemon_on_the_sim_cell_publishes_pointcloud2_and_tf_static(tmp_path: Pa
             c = wsc1.decode(s.payload.to_bytes())
             wsc[c.t_first_ns] = c
 
+        def on_pose(s: zenoh.Sample) -> None:
+            p = wsp1.decode(s.payload.to_bytes())
+            poses[p.seq] = p
+
         tf_hash = get_typestore(Stores.ROS2_JAZZY).hash_rihs01("tf2_msgs/msg/TFMessage")
         subs = [
             peer.declare_subscriber(f"9/{topic[1:]}/{PC2_DDS}/{PC2_HASH}", on_ros),
             peer.declare_subscriber(f"{cfg.zenoh.prefix}/cloud", on_wsc),
+            peer.declare_subscriber(f"{cfg.zenoh.prefix}/pose", on_pose),
             zenoh.ext.declare_advanced_subscriber(
                 peer,
                 f"9/tf_static/tf2_msgs::msg::dds_::TFMessage_/{tf_hash}",
@@ -361,7 +367,7 @@ def test_daemon_on_the_sim_cell_publishes_pointcloud2_and_tf_static(tmp_path: Pa
         ]
 
         def full() -> list[int]:
-            return [t for t in set(ros) & set(wsc) if wsc[t].n_points > 0]
+            return [t for t in set(ros) & set(wsc) if wsc[t].n_points > 0 and wsc[t].seq in poses]
 
         _wait(lambda: bool(full()) and bool(tf), "no PointCloud2 with points / no tf_static")
         stamp = min(full())
@@ -371,6 +377,17 @@ def test_daemon_on_the_sim_cell_publishes_pointcloud2_and_tf_static(tmp_path: Pa
         dist = np.linalg.norm(back.xyz - ball, axis=1) - truth["ball_radius_m"]
         assert np.abs(dist).max() < 1e-3, np.abs(dist).max()
         np.testing.assert_array_equal(back.xyz, wsc[stamp].xyz)
+        # <prefix>/pose: the batch's profiles' robot poses, the flange where the arm holds it
+        # (the simulated robot's few-micrometre noise), the sensor where the calibration puts it
+        pb, cloud = poses[wsc[stamp].seq], wsc[stamp]
+        assert (pb.n_poses, pb.frame_id) == (cloud.n_profiles, "base")
+        assert (pb.t_ns[0], pb.t_ns.max()) == (cloud.t_first_ns, cloud.t_last_ns)
+        np.testing.assert_allclose(
+            pb.flange2base, np.broadcast_to(flange, pb.flange2base.shape), atol=5e-5
+        )
+        np.testing.assert_allclose(pb.sensor2frame, pb.flange2base @ s2f, atol=1e-12)
+        in_sensor = se3.apply(se3.invert(pb.sensor2frame[0]), back.xyz)  # the laser plane x = 0
+        assert np.abs(in_sensor[:, 0]).max() < 1e-4, np.abs(in_sensor[:, 0]).max()
         # intensity travels when the sensor gives it (the simulated LPF1 gives none)
         assert (back.intensity is None) == (wsc[stamp].intensity is None)
         if back.intensity is not None:

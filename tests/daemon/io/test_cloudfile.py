@@ -21,6 +21,7 @@ from mcap_ros2.decoder import DecoderFactory
 from support import free_tcp_port, own_loopback_host
 from typer.testing import CliRunner
 
+from wristscan.calib import se3
 from wristscan.daemon.cli.app import app
 from wristscan.daemon.cloud.zenoh_io import DaemonZenoh, open_session
 from wristscan.daemon.io import cloudfile
@@ -44,6 +45,15 @@ def batch_xyz(seq: int) -> np.ndarray:
 
 def batch_intensity(seq: int) -> np.ndarray:
     return ((np.arange(B) + seq) % 256).astype(np.uint8)
+
+
+SENSOR2FLANGE = se3.make(se3.rot_x(0.3), np.array([0.01, -0.02, 0.1]))
+
+
+def batch_flange(seq: int) -> np.ndarray:
+    """The flange of each of the batch's profiles (P, 4, 4): moves and turns with ``seq``."""
+    k = seq * PROFILES + np.arange(PROFILES)
+    return se3.make(se3.rot_z(k * 0.01), np.stack([k * 1e-4, 0.2 + 0 * k, 0.3 + 0 * k], 1))
 
 
 @pytest.mark.parametrize(
@@ -102,6 +112,9 @@ def endpoint() -> Iterator[str]:
                 intensity=batch_intensity(seq),
                 profile_index=np.arange(B, dtype=np.uint32) % PROFILES,
             )
+            f2b = batch_flange(seq)
+            t_ns = T0 + seq * DT_NS + np.linspace(0, SPAN_NS, PROFILES).astype(np.int64)
+            dz.publish_pose(seq, "base", t_ns, f2b, f2b @ SENSOR2FLANGE)
             stop.wait(0.01)
 
     thread = threading.Thread(target=publish, name="test-publisher")
@@ -134,7 +147,7 @@ def test_record_mcap_plays_back_the_published_batches(endpoint: str, tmp_path: P
     seqs = []
     with open(tmp_path / "rec.mcap", "rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
-        for _, channel, message, msg in reader.iter_decoded_messages():
+        for _, channel, message, msg in reader.iter_decoded_messages(topics=["/wristscan/cloud"]):
             assert channel.topic == "/wristscan/cloud"
             raw = np.frombuffer(bytes(msg.data), np.uint8).reshape(msg.width, msg.point_step)
             pts = raw.copy().view("<f4")
@@ -146,6 +159,28 @@ def test_record_mcap_plays_back_the_published_batches(endpoint: str, tmp_path: P
             assert msg.header.frame_id == "base"
             seqs.append(seq)
     assert len(seqs) == 6 and seqs == sorted(seqs)
+    # each batch's robot pose: the flange in the base frame and the sensor in the cloud's frame,
+    # at the batch's first exposure, where the tools draw them with the clouds
+    poses: dict[str, dict[int, np.ndarray]] = {}
+    with open(tmp_path / "rec.mcap", "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for _, channel, message, msg in reader.iter_decoded_messages(
+            topics=["/wristscan/flange_pose", "/wristscan/sensor_pose"]
+        ):
+            stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+            assert stamp == message.log_time and msg.header.frame_id == "base"
+            p, q = msg.pose.position, msg.pose.orientation
+            m = se3.make(se3.quat_xyzw_to_matrix([q.x, q.y, q.z, q.w]), [p.x, p.y, p.z])
+            poses.setdefault(channel.topic, {})[(stamp - T0) // DT_NS] = m
+    # (the very first batch may have come in before the pose subscription did)
+    assert sorted(poses["/wristscan/flange_pose"]) in (seqs, seqs[1:])
+    assert sorted(poses["/wristscan/sensor_pose"]) == sorted(poses["/wristscan/flange_pose"])
+    for seq in poses["/wristscan/flange_pose"]:
+        want = batch_flange(seq)[0]
+        np.testing.assert_allclose(poses["/wristscan/flange_pose"][seq], want, atol=1e-12)
+        np.testing.assert_allclose(
+            poses["/wristscan/sensor_pose"][seq], want @ SENSOR2FLANGE, atol=1e-12
+        )
 
 
 def test_record_e57_is_one_scan_of_the_published_batches(endpoint: str, tmp_path: Path) -> None:
