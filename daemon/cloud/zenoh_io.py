@@ -87,10 +87,12 @@ class DaemonZenoh:
         self._stats_fn = stats or dict
         self._queryables = [
             session.declare_queryable(
-                f"{self.prefix}/calibration", self._answer(lambda: self._calibration_fn())
+                f"{self.prefix}/calibration",
+                self._answer(f"{self.prefix}/calibration", lambda: self._calibration_fn()),
             ),
             session.declare_queryable(
-                f"{self.prefix}/stats", self._answer(lambda: self._stats_fn())
+                f"{self.prefix}/stats",
+                self._answer(f"{self.prefix}/stats", lambda: self._stats_fn()),
             ),
         ]
         self.seq = 0
@@ -98,7 +100,10 @@ class DaemonZenoh:
         self._closed = False
 
     @staticmethod
-    def _answer(fn: JsonFn) -> Callable[[zenoh.Query], None]:
+    def _answer(key: str, fn: JsonFn) -> Callable[[zenoh.Query], None]:
+        """Reply on the queryable's own key, so an asker with a wildcard (``wristscan/**/stats``,
+        ``wristscan cells``) knows which daemon answered."""
+
         def on_query(query: zenoh.Query) -> None:
             try:
                 body = json.dumps(fn())
@@ -106,7 +111,7 @@ class DaemonZenoh:
                 log.exception("query %s failed", query.key_expr)
                 query.reply_err(json.dumps({"error": str(exc)}))
                 return
-            query.reply(query.key_expr, body, encoding=zenoh.Encoding("application/json"))
+            query.reply(key, body, encoding=zenoh.Encoding("application/json"))
 
         return on_query
 
