@@ -4,6 +4,7 @@ truth, in one place (benchmarks put this folder on ``sys.path``; pytest does for
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -323,3 +324,35 @@ def png_size(data: bytes) -> tuple[int, int]:
     assert zlib.crc32(kind + body) == crc, "PNG header CRC mismatch"
     width, height = struct.unpack(">II", body[:8])
     return int(width), int(height)
+
+
+# ---------------------------------------------------------------------------------------------
+# TLS certificates for zenoh's tls/ endpoints (docs/security.md), made with the openssl command
+
+
+def make_tls_files(folder: Path, host: str, client: bool = False) -> Path:
+    """In a new ``folder``: a certificate authority (``ca.pem``, ``ca.key``), a server
+    certificate for the IP address ``host`` signed by it (``server.pem``, ``server.key``) and,
+    with ``client``, a client certificate for mutual TLS (``client.pem``, ``client.key``).
+    Returns ``folder``."""
+    import subprocess
+
+    def openssl(*args: str | Path) -> None:
+        subprocess.run(["openssl", *map(str, args)], check=True, capture_output=True)
+
+    ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes"]
+    folder.mkdir(parents=True)
+    ca, ca_key = folder / "ca.pem", folder / "ca.key"
+    openssl("req", "-x509", *ec, "-keyout", ca_key, "-out", ca, "-days", "2", "-subj", "/CN=CA")
+    kinds = {"server": f"subjectAltName=IP:{host}\n"}
+    if client:
+        kinds["client"] = "extendedKeyUsage=clientAuth\n"
+    for kind, extension in kinds.items():
+        key, csr, ext = (folder / f"{kind}.{x}" for x in ("key", "csr", "cnf"))
+        openssl("req", *ec, "-keyout", key, "-out", csr, "-subj", f"/CN=wristscan {kind}")
+        ext.write_text(extension)
+        signing = ["-CA", ca, "-CAkey", ca_key, "-CAcreateserial", "-days", "2"]
+        openssl(
+            "x509", "-req", "-in", csr, *signing, "-out", folder / f"{kind}.pem", "-extfile", ext
+        )
+    return folder

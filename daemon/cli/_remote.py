@@ -2,6 +2,10 @@
 ``record``): where it is (prefix, endpoints, mode, from a config file, the command line or the
 embedded default), opening a client, and waiting for its liveliness token (exit 130 when a
 signal, see :func:`._common.stop_on_signals`, ended the wait).
+
+The security settings of the client session (TLS, user/password) come from the per-user client
+config: ``$WRISTSCAN_ZENOH_CONFIG``, else ``~/.config/wristscan/zenoh.json5`` (see
+:func:`wristscan.daemon.cloud.session.user_client_config` and ``docs/security.md``).
 """
 
 from __future__ import annotations
@@ -81,10 +85,13 @@ class Target:
     prefix: str
     connect: tuple[str, ...]
     mode: Literal["peer", "client"]
+    zenoh_config: Path | None = None
+    """The client's zenoh config file (security settings), None: plain zenoh."""
 
     def describe(self) -> str:
         eps = ", ".join(self.connect) if self.connect else "no endpoints"
-        return f"{self.prefix} ({self.mode}, {eps})"
+        extra = f", zenoh config {self.zenoh_config}" if self.zenoh_config is not None else ""
+        return f"{self.prefix} ({self.mode}, {eps}{extra})"
 
 
 def _reachable(endpoint: str) -> str:
@@ -118,10 +125,14 @@ def resolve_target(
 ) -> Target:
     """The daemon to talk to. A config file (or, without one, the embedded default config of the
     simulated cell) gives the prefix and endpoints; ``--prefix``, ``--connect``, ``--mode``
-    override them. In peer mode we connect to the endpoints the daemon listens on."""
+    override them. In peer mode we connect to the endpoints the daemon listens on. The client's
+    security settings are the per-user client config, if any."""
+    from wristscan.daemon.cloud.session import user_client_config
+
+    zconf = user_client_config()
     if config is None and prefix is not None and connect:
         # Everything given: skip the config module (its import alone takes a second or more).
-        return Target(_check_prefix(prefix), tuple(connect), _mode(mode or "peer"))
+        return Target(_check_prefix(prefix), tuple(connect), _mode(mode or "peer"), zconf)
 
     from wristscan.daemon.config import ConfigError, load_config, load_default
 
@@ -140,14 +151,17 @@ def resolve_target(
         endpoints = tuple(dict.fromkeys([*z.connect, *listen]))
     if chosen == "client" and not endpoints:
         fail("client mode needs a router endpoint: give --connect", EXIT_USAGE)
-    return Target(_check_prefix(prefix if prefix is not None else z.prefix), endpoints, chosen)
+    key = _check_prefix(prefix if prefix is not None else z.prefix)
+    return Target(key, endpoints, chosen, zconf)
 
 
 def open_client(target: Target, capacity: int, subscribe: bool = True) -> CloudClient:
-    """A :class:`CloudClient` towards ``target``; a bad endpoint is a user error (exit 2)."""
+    """A :class:`CloudClient` towards ``target``; a bad endpoint or zenoh config file is a user
+    error (exit 2, one line)."""
     import zenoh
 
     from wristscan.daemon.cloud.client import CloudClient
+    from wristscan.daemon.cloud.session import ZenohSetupError, zenoh_reason
 
     try:
         return CloudClient(
@@ -156,9 +170,12 @@ def open_client(target: Target, capacity: int, subscribe: bool = True) -> CloudC
             mode=target.mode,
             capacity=capacity,
             subscribe=subscribe,
+            config_file=target.zenoh_config,
         )
+    except ZenohSetupError as exc:
+        fail(str(exc), EXIT_USAGE)
     except zenoh.ZError as exc:
-        fail(f"cannot open a zenoh session ({target.describe()}): {exc}", EXIT_USAGE)
+        fail(f"zenoh refused ({target.describe()}): {zenoh_reason(exc)}", EXIT_USAGE)
 
 
 def wait_alive(client: CloudClient, timeout: float, stop: threading.Event) -> bool:

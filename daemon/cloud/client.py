@@ -13,11 +13,17 @@ with CloudClient("wristscan/sim", connect=["tcp/127.0.0.1:7447"]) as client:
 Received payloads go into a ring of ``capacity`` batches: when the consumer is slower than the
 daemon the oldest batches are dropped (and counted in ``dropped``), so memory stays bounded no
 matter how slow the consumer is. Decoding happens in the consumer's thread, on ``recv``.
+
+Security settings (TLS, user/password, access control) come from a zenoh JSON5 file:
+``config_file``, else the per-user client config (``$WRISTSCAN_ZENOH_CONFIG``, else
+``~/.config/wristscan/zenoh.json5`` when it exists; see ``docs/security.md``). A session that
+cannot be opened raises :class:`ZenohSetupError` (one line).
 """
 
 from __future__ import annotations
 
 import json
+import os
 import threading
 import time
 from collections import deque
@@ -27,9 +33,9 @@ from typing import Any, Literal, Self
 import zenoh
 
 from wristscan.daemon.cloud import wsc1
-from wristscan.daemon.cloud.zenoh_io import open_session
+from wristscan.daemon.cloud.session import ZenohSetupError, open_session, user_client_config
 
-__all__ = ["CloudClient", "Wsc1Error"]
+__all__ = ["CloudClient", "Wsc1Error", "ZenohSetupError"]
 
 Wsc1Error = wsc1.Wsc1Error
 
@@ -47,13 +53,33 @@ class CloudClient:
         session: zenoh.Session | None = None,
         subscribe: bool = True,
         multicast_scouting: bool = False,
+        config_file: str | os.PathLike[str] | None = None,
+        shared_memory: bool = False,
+        user_config: bool = True,
     ) -> None:
-        """``subscribe`` False: only query/liveliness (no cloud traffic is pulled)."""
+        """``subscribe`` False: only query/liveliness (no cloud traffic is pulled).
+        ``config_file``: a zenoh JSON5 file with the security settings (None: the per-user
+        client config when ``user_config``, else plain zenoh). ``shared_memory``: zenoh's
+        shared memory between processes of one host (off: zenoh leaves its files in
+        ``/dev/shm``)."""
         if capacity < 1:
             raise ValueError("capacity must be >= 1")
         self.prefix = prefix.rstrip("/")
         self._own_session = session is None
-        self.session = session or open_session(mode, connect, listen, multicast_scouting)
+        if session is None:
+            session = open_session(
+                mode,
+                connect,
+                listen,
+                multicast_scouting,
+                config_file=(
+                    config_file
+                    if config_file is not None or not user_config
+                    else user_client_config()
+                ),
+                shared_memory=shared_memory,
+            )
+        self.session = session
         self._ring: deque[bytes] = deque(maxlen=capacity)
         self._cond = threading.Condition()
         self.received = 0

@@ -1,4 +1,5 @@
-"""The daemon's zenoh face: session set-up and the keys of the WSC1 contract (DESIGN.md).
+"""The daemon's zenoh face: the keys of the WSC1 contract (DESIGN.md). Sessions are opened by
+:func:`open_session` (from :mod:`.session`: security settings, :class:`ZenohSetupError`).
 
 | key | what |
 |---|---|
@@ -14,7 +15,7 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import Any, Literal
 
 import numpy as np
@@ -22,39 +23,13 @@ import zenoh
 from numpy.typing import NDArray
 
 from wristscan.daemon.cloud import wsc1, wsp1
+from wristscan.daemon.cloud.session import ZenohSetupError, open_session, session_config
 
-__all__ = ["DaemonZenoh", "open_session", "session_config"]
+__all__ = ["DaemonZenoh", "ZenohSetupError", "open_session", "session_config"]
 
 log = logging.getLogger(__name__)
 
 JsonFn = Callable[[], dict[str, Any]]
-
-
-def session_config(
-    mode: Literal["peer", "client", "router"] = "peer",
-    connect: Sequence[str] = (),
-    listen: Sequence[str] = (),
-    multicast_scouting: bool = False,
-) -> zenoh.Config:
-    """A zenoh configuration with explicit endpoints (peer mode by default; ``client`` towards
-    routers for several machines). Multicast scouting stays off unless asked for, so a cell PC
-    never talks to whatever else is on the plant network by accident."""
-    conf = zenoh.Config()
-    conf.insert_json5("mode", json.dumps(mode))
-    conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
-    if mode != "client":
-        conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
-    conf.insert_json5("scouting/multicast/enabled", json.dumps(multicast_scouting))
-    return conf
-
-
-def open_session(
-    mode: Literal["peer", "client", "router"] = "peer",
-    connect: Sequence[str] = (),
-    listen: Sequence[str] = (),
-    multicast_scouting: bool = False,
-) -> zenoh.Session:
-    return zenoh.open(session_config(mode, connect, listen, multicast_scouting))
 
 
 class DaemonZenoh:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import re
+import socket
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -31,6 +32,23 @@ _ENDPOINT_NET = re.compile(
     r"^(tcp|udp|tls|quic|ws)/(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9._-]+):(\d{1,5})(#\S*)?$"
 )
 _ENDPOINT_OTHER = re.compile(r"^(unixsock-stream|serial)/\S+$")
+
+
+def _bind_problem(host: str) -> str | None:
+    """Why a listener could not be bound on ``host`` (it does not resolve, or is no address of
+    this machine), or None. Binds port 0 only: the configured port may be the running daemon's."""
+    name = host[1:-1] if host.startswith("[") else host
+    try:
+        infos = socket.getaddrinfo(name, 0, type=socket.SOCK_STREAM)
+    except (OSError, UnicodeError) as exc:
+        return f"the host {host!r} does not resolve ({getattr(exc, 'strerror', None) or exc})"
+    family, _, _, _, address = infos[0]
+    try:
+        with socket.socket(family, socket.SOCK_STREAM) as sock:
+            sock.bind(address)
+    except OSError as exc:
+        return f"cannot listen on {host!r}: {exc.strerror or exc} (not an address of this host?)"
+    return None
 
 
 def _resolve_path(value: str | None, info: ValidationInfo) -> Path | None:
@@ -91,7 +109,13 @@ class ZenohConfig(StrictModel):
     """``drop``: a slow network loses batches (seq gaps) rather than stalling acquisition."""
     status_period_s: Annotated[Float, Field(gt=0, le=3600)] = 1.0
     config_file: Str | None = None
-    """An extra zenoh JSON5 config merged under these settings (TLS, authentication, ACL)."""
+    """An extra zenoh JSON5 config merged under these settings (TLS, authentication, ACL; see
+    ``docs/security.md``). Loading only resolves the path (a client reading this config on
+    another machine has no such file); :meth:`problems` checks it for ``check-config`` and
+    ``run``."""
+    shared_memory: Bool = False
+    """zenoh's shared memory towards subscribers on this host (faster for large batches); zenoh
+    leaves its segment files in ``/dev/shm`` when the daemon exits."""
 
     @field_validator("connect", "listen")
     @classmethod
@@ -131,6 +155,39 @@ class ZenohConfig(StrictModel):
                 "connect", 'mode = "client" needs at least one endpoint to connect to'
             )
         return self
+
+    @model_validator(mode="after")
+    def _tls_needs_a_certificate(self) -> ZenohConfig:
+        if self.config_file is None and any(self._tls_listen()):
+            raise cross_field(
+                "config_file",
+                "a tls/ or quic/ listen endpoint needs a config_file with the certificate and key "
+                "(docs/security.md)",
+            )
+        return self
+
+    def _tls_listen(self) -> list[bool]:
+        return [ep.startswith(("tls/", "quic/")) for ep in self.listen]
+
+    def problems(self) -> list[str]:
+        """What stops the daemon's zenoh session on this machine, known without opening it, one
+        line each (``zenoh.<key>: ...``; empty: nothing): a listen host that does not resolve or
+        is no address of this host (port 0 is bound, not the configured port: the running
+        daemon may hold it); a zenoh config file missing, unreadable or invalid, a file it names
+        missing, a password, dictionary or private key everyone may read, a TLS listener without
+        certificate and key."""
+        out = []
+        for i, ep in enumerate(self.listen):
+            m = _ENDPOINT_NET.match(ep)
+            problem = None if m is None else _bind_problem(m.group(2))
+            if problem is not None:
+                out.append(f"zenoh.listen: item {i}: {problem}")
+        if self.config_file is not None:
+            from wristscan.daemon.cloud.session import check_config_file
+
+            found = check_config_file(self.config_file, tls_listen=any(self._tls_listen()))
+            out += [f"zenoh.config_file: {p}" for p in found]
+        return out
 
 
 class CalibrationConfig(StrictModel):
