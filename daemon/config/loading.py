@@ -18,6 +18,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field, PrivateAttr, ValidationError, model_validator
 
+from wristscan.daemon.config.archive import ArchiveConfig
 from wristscan.daemon.config.errors import ConfigError, format_validation_error
 from wristscan.daemon.config.hardware import CellConfig, RobotConfig, SensorConfig, TableConfig
 from wristscan.daemon.config.ros2 import Ros2Config
@@ -55,6 +56,7 @@ class Config(StrictModel):
     zenoh: ZenohConfig = Field(default_factory=ZenohConfig)
     calibration: CalibrationConfig = Field(default_factory=CalibrationConfig)
     ros2: Ros2Config = Field(default_factory=Ros2Config)
+    archive: ArchiveConfig = Field(default_factory=ArchiveConfig)
     sim: SimConfig | None = None
 
     _source: str = PrivateAttr(default="<config>")

@@ -7,8 +7,7 @@ addition the oldest jobs go until at most ``keep`` jobs and ``max_bytes`` remain
 always kept). Job names are zenoh-key safe (``[A-Za-z0-9_.-]``), so a job is served as
 ``<prefix>/scans/<job>`` (:mod:`wristscan.daemon.cloud.scans`).
 
-The default root is ``$STATE_DIRECTORY/scans`` under systemd (``/var/lib/wristscan/scans``),
-else ``~/.local/state/wristscan/scans``.
+Its folder comes from ``[archive]`` (:mod:`wristscan.daemon.config.archive`).
 """
 
 from __future__ import annotations
@@ -28,7 +27,6 @@ __all__ = [
     "ArchiveError",
     "ScanArchive",
     "check_name",
-    "default_root",
     "job_name",
 ]
 
@@ -41,13 +39,6 @@ _JOB = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$")
 
 class ArchiveError(ValueError):
     """A job or file name the archive does not hold (or could not hold)."""
-
-
-def default_root() -> Path:
-    state = os.environ.get("STATE_DIRECTORY")
-    if state:
-        return Path(state.split(":")[0]) / "scans"
-    return Path.home() / ".local" / "state" / "wristscan" / "scans"
 
 
 def job_name(plan_name: str, when_s: float | None = None) -> str:

@@ -60,6 +60,7 @@ from wristscan.daemon.procedure.errors import MotionNotConfirmed
 from wristscan.daemon.procedure.in_force import calibration_in_force, procedure_acquisition
 from wristscan.daemon.procedure.motion import guarded_motion, require_motion
 from wristscan.daemon.procedure.progress import Progress, StepReport, stage_reporter
+from wristscan.daemon.scan.archive import keep_in_archive
 from wristscan.daemon.scan.errors import PlanRejected, ScanAborted, ScanError
 from wristscan.daemon.scan.output import write_outputs
 from wristscan.daemon.scan.plan import (
@@ -277,6 +278,9 @@ def run_scan(
     files: list[Path] = []
     if out_dir is not None:
         files = write_outputs(out_dir, clouds, merge, opts, summary)
+    archived = keep_in_archive(cfg, plan.name, files, clouds, merge, opts, summary)
+    if archived is not None:
+        summary["archived_as"] = archived.name
     report(total, total, "done")
     return ScanResult(plan, recorded, clouds, merge, files, cal, duration, frame, summary)
 

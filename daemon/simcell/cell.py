@@ -226,7 +226,8 @@ def free_sim_config(changes: dict[str, dict[str, Any]] | None = None) -> dict[st
     fixed UR ports, the sensor's UDP port, the table's and zenoh's TCP ports. The ports are
     chosen by binding port 0 and releasing it, which is safe here because nothing else binds on
     that address (another run picks another of 16 million; outgoing connections use 127.0.0.1).
-    ``changes`` are merged section by section (``{"robot": {...}, "sim.sensor": {...}}``)."""
+    ``changes`` are merged section by section (``{"robot": {...}, "sim.sensor": {...}}``). Its scan
+    archive is off unless ``changes`` turn it on."""
     from wristscan.drivers.sim.ur.controller import pick_free_loopback_host
 
     doc: dict[str, Any] = tomllib.loads(
@@ -243,6 +244,9 @@ def free_sim_config(changes: dict[str, dict[str, Any]] | None = None) -> dict[st
     doc["sim"]["table"]["host"] = host
     doc["sim"]["table"]["port"] = table_port
     doc["zenoh"]["listen"] = [f"tcp/{host}:{_free_tcp_port(host)}"]
+    # A throw-away cell keeps no scan archive (it would land in the user's state folder)
+    # unless asked to: ``{"archive": {"enabled": True, "dir": ...}}``.
+    doc["archive"] = {"enabled": False}
     for dotted, values in (changes or {}).items():
         node = doc
         for part in dotted.split("."):

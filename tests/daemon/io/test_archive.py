@@ -8,7 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from wristscan.daemon.io.archive import ArchiveError, ScanArchive, default_root, job_name
+from wristscan.daemon.config.archive import default_archive_root
+from wristscan.daemon.io.archive import ArchiveError, ScanArchive, job_name
 
 
 def _files(tmp: Path, tag: str, size: int = 100) -> dict[str, Path]:
@@ -64,4 +65,4 @@ def test_job_names_sort_by_time_and_defaults(monkeypatch: pytest.MonkeyPatch) ->
     assert job_name("part 7 / left", 0.0) == "19700101T000000Z-part_7_left"
     assert job_name("***", 86400.0) == "19700102T000000Z-scan"
     monkeypatch.setenv("STATE_DIRECTORY", "/var/lib/wristscan")
-    assert default_root() == Path("/var/lib/wristscan/scans")
+    assert default_archive_root() == Path("/var/lib/wristscan/scans")

@@ -545,7 +545,8 @@ def cell_scan(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     # The light sensor of _sim_config, its clock slower than the host's (an ignored drift would
     # show, see test_e2e_daemon).
     sensor = {"rate_hz": 250.0, "n_points": 256, "clock_drift_ppm": -100.0}
-    _, cfg = _sim_config(folder, **{"sim.sensor": sensor})
+    archive = {"enabled": True, "dir": str(folder / "archive"), "keep": 5}
+    _, cfg = _sim_config(folder, **{"sim.sensor": sensor, "archive": archive})
     plan = generate_plan(
         *SMALL_BOX,
         fov_width_m=0.05,
@@ -590,6 +591,24 @@ def cell_scan(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
         "folder": folder,
         "sim_stats": sim_stats,
     }
+
+
+@pytest.mark.slow
+def test_a_finished_scan_is_kept_in_the_archive(cell_scan: dict[str, Any]) -> None:
+    """The merged cloud and the report of the job, byte for byte, under its archive name (the
+    refused plan left nothing)."""
+    from wristscan.daemon.io.archive import ScanArchive
+
+    result = cell_scan["result"]
+    arch = ScanArchive(cell_scan["folder"] / "archive")
+    (job,) = arch.jobs()
+    assert job["job"] == result.report["archived_as"] and job["job"].endswith(
+        "-" + (cell_scan["plan"].name or "scan")
+    )
+    out = cell_scan["folder"] / "out"
+    assert arch.read(job["job"], "merged.ply") == (out / "merged.ply").read_bytes()
+    assert json.loads(arch.read(job["job"], "report.json"))["plan"] == cell_scan["plan"].name
+    assert job["passes"] == len(cell_scan["plan"].passes) and job["points"] > 0
 
 
 @pytest.mark.slow
