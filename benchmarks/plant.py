@@ -83,14 +83,12 @@ class _Consumer:
 def _start_cell(k: int, router: str, rate_hz: float, n_points: int, tmp: Path) -> Any:
     from wristscan.calib import kinematics, se3
     from wristscan.daemon.config import load_config
-    from wristscan.daemon.io.calibfile import (
-        Calibration,
-        Residuals,
-        RobotIdentity,
-        SensorIdentity,
-        write_calibration,
+    from wristscan.daemon.simcell.cell import (
+        dump_toml,
+        free_sim_config,
+        start_cell,
+        write_truth_calibrations,
     )
-    from wristscan.daemon.simcell.cell import dump_toml, free_sim_config, start_cell
     from wristscan.drivers.sim.scene import sensor_looking_down
 
     doc = free_sim_config(
@@ -112,18 +110,9 @@ def _start_cell(k: int, router: str, rate_hz: float, n_points: int, tmp: Path) -
     path.write_text(dump_toml(doc))
     cfg = load_config(path)
     cell = start_cell(cfg)
-    s2f = np.array(cell.truth()["sensor2flange"])
-    write_calibration(
-        tmp / f"s2f{k}.json",
-        Calibration(
-            kind="sensor2flange",
-            transform=s2f,
-            robot=RobotIdentity(cfg.robot.model),
-            sensor=SensorIdentity(cfg.sensor.driver, str(cfg.sensor.sensor_id)),
-            method="simulation truth",
-            residuals=Residuals(rms_m=0.0),
-        ),
-    )
+    truth = cell.truth()
+    write_truth_calibrations(cfg, truth)
+    s2f = np.array(truth["sensor2flange"])
     assert cell.controller is not None
     flange = sensor_looking_down(np.array([*TARGET_XY, 0.0]), 0.10) @ se3.invert(s2f)
     q0 = np.array(cell.controller.state()["q"])

@@ -22,6 +22,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from wristscan.daemon.io.atomic import fsync_dir, process_umask
+
 __all__ = [
     "ARCHIVED_FILES",
     "ArchiveError",
@@ -46,14 +48,6 @@ def job_name(plan_name: str, when_s: float | None = None) -> str:
     stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(time.time() if when_s is None else when_s))
     safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", plan_name).strip("._-")[:80] or "scan"
     return f"{stamp}-{safe}"
-
-
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 class ScanArchive:
@@ -85,10 +79,10 @@ class ScanArchive:
                 sizes[name] = (tmp / name).stat().st_size
             manifest = {"job": job, "created_utc": time.time(), "files": sizes, **(info or {})}
             (tmp / "manifest.json").write_text(json.dumps(manifest, indent=1), encoding="utf-8")
-            os.chmod(tmp, 0o755 & ~_umask())
-            _fsync_dir(tmp)
+            os.chmod(tmp, 0o755 & ~process_umask())
+            fsync_dir(tmp)
             os.rename(tmp, final)
-            _fsync_dir(self.root)
+            fsync_dir(self.root)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
@@ -146,15 +140,3 @@ def check_name(name: str) -> None:
     """Raise :class:`ArchiveError` unless ``name`` can be a job or file of the archive."""
     if not _JOB.match(name) or ".." in name:
         raise ArchiveError(f"not a scan archive name: {name!r}")
-
-
-def _umask() -> int:
-    """The process umask without changing it (``os.umask`` would, for every thread)."""
-    try:
-        with open("/proc/self/status", encoding="ascii") as f:
-            for line in f:
-                if line.startswith("Umask:"):
-                    return int(line.split()[1], 8)
-    except (OSError, ValueError):
-        pass
-    return 0o022

@@ -22,12 +22,12 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Self
 
-__all__ = ["atomic_writer", "write_atomic"]
+__all__ = ["atomic_writer", "fsync_dir", "process_umask", "write_atomic"]
 
 log = logging.getLogger(__name__)
 
 
-def _umask() -> int:
+def process_umask() -> int:
     """The process umask, read without changing it (``os.umask`` can only be read by setting it,
     which would race with other threads creating files)."""
     try:
@@ -44,10 +44,10 @@ def _mode_for(target: Path) -> int:
     try:
         return os.stat(target).st_mode & 0o777
     except FileNotFoundError:
-        return 0o666 & ~_umask()
+        return 0o666 & ~process_umask()
 
 
-def _fsync_dir(directory: Path) -> None:
+def fsync_dir(directory: Path) -> None:
     """Make the rename durable. Some file systems refuse fsync on a folder: that only weakens
     durability after a power cut, so it is logged, not raised."""
     try:
@@ -83,7 +83,7 @@ def atomic_writer(path: str | os.PathLike[str]) -> Iterator[IO[bytes]]:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
-    _fsync_dir(directory)
+    fsync_dir(directory)
 
 
 def write_atomic(path: str | os.PathLike[str], data: bytes | str) -> Path:
