@@ -25,5 +25,10 @@ def register(app: typer.Typer) -> None:
 
         if not logging.getLogger().handlers:
             logging.basicConfig(level=logging.INFO)
+        if logging.getLogger().getEffectiveLevel() > logging.INFO:
+            # The service's own life cycle (start, waiting for devices, reloads and what they
+            # changed, the final counters) is logged at INFO; the drivers stay at the root level.
+            for name in ("wristscan.daemon.service", "wristscan.daemon.devices"):
+                logging.getLogger(name).setLevel(logging.INFO)
         code = run_service(config, uncalibrated=uncalibrated)
         raise typer.Exit(code)

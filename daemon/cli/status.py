@@ -173,10 +173,24 @@ def _answered(snap: Mapping[str, Any]) -> bool:
     return bool(snap["alive"] or snap["status"] is not None or snap["stats"] is not None)
 
 
+def state_text(status: Any) -> str | None:
+    """``degraded: no profiles for 3 s``, ``waiting: waiting for robot for 12 s (...)``,
+    ``running``: the daemon's state and what is degraded, from its status message."""
+    if not isinstance(status, Mapping) or "state" not in status:
+        return None
+    degraded = status.get("degraded")
+    if isinstance(degraded, list) and degraded:
+        return f"{status['state']}: " + "; ".join(str(d) for d in degraded)
+    return str(status["state"])
+
+
 def render(snap: Mapping[str, Any], timeout: float) -> list[str]:
     """The human-readable report of one snapshot."""
     lines = [f"daemon   {snap['prefix']}", f"alive    {'yes' if snap['alive'] else 'no'}"]
     status = snap["status"]
+    state = state_text(status)
+    if state is not None:
+        lines.append(f"state    {state}")
     if status is None:
         lines.append(f"status   none received within {timeout:g} s")
     else:

@@ -29,6 +29,7 @@ from wristscan.daemon.config.service import (
     ZenohConfig,
 )
 from wristscan.daemon.config.sim import SIM_KINDS_FOR_DRIVER, SimConfig
+from wristscan.daemon.config.startup import ServiceConfig
 from wristscan.daemon.config.values import CELL_NAME, StrictModel, cross_field, render_value
 
 __all__ = [
@@ -56,6 +57,7 @@ class Config(StrictModel):
     zenoh: ZenohConfig = Field(default_factory=ZenohConfig)
     calibration: CalibrationConfig = Field(default_factory=CalibrationConfig)
     ros2: Ros2Config = Field(default_factory=Ros2Config)
+    service: ServiceConfig = Field(default_factory=ServiceConfig)
     archive: ArchiveConfig = Field(default_factory=ArchiveConfig)
     sim: SimConfig | None = None
 

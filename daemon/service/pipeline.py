@@ -117,6 +117,7 @@ class Pipeline:
         self._publish = publish
         self._publish_status = publish_status
         self._publish_pose = publish_pose
+        self._inline_failing = 0
         self._on_batch = on_batch
         s = self.settings
         self._profiles: deque[Profile] = deque()
@@ -338,12 +339,16 @@ class Pipeline:
                 try:
                     rec = read(timeout=0.0)
                 except DriverError as exc:
-                    # The driver reconnects by itself; the next step tries again.
+                    # The driver reconnects by itself; the next step tries again. A UDP sensor
+                    # can fail 100 times a second: the first of a run warns, the rest debug.
                     self.read_errors[self.sensor.kind] += 1
-                    log.warning("%s: %s", self.sensor.kind, exc)
+                    self._inline_failing += 1
+                    level = logging.WARNING if self._inline_failing == 1 else logging.DEBUG
+                    log.log(level, "%s: %s", self.sensor.kind, exc)
                     return
                 if rec is None:
                     return
+                self._inline_failing = 0
                 if len(sink) < maxsize:
                     sink.append(rec)
                 else:

@@ -74,6 +74,7 @@ class Reader(Generic[T]):
     def _run(self) -> None:
         name_os_thread(self.thread.name)
         sink, maxsize, read, signal = self.sink, self.maxsize, self.device.read, self.signal
+        failing = 0  # errors since the last record: the first is a warning, the rest debug
         try:
             while not self._stop.is_set():
                 try:
@@ -81,11 +82,16 @@ class Reader(Generic[T]):
                 except DriverError as exc:
                     # The driver reconnects by itself; back off a little and keep going.
                     self.errors += 1
-                    log.warning("%s: %s", self.device.kind, exc)
+                    failing += 1
+                    level = logging.WARNING if failing == 1 else logging.DEBUG
+                    log.log(level, "%s: %s", self.device.kind, exc)
                     self._stop.wait(0.1)
                     continue
                 if rec is None:
                     continue
+                if failing:
+                    log.info("%s: records again after %d read errors", self.device.kind, failing)
+                    failing = 0
                 if len(sink) < maxsize:
                     sink.append(rec)
                     if signal is not None and not signal.is_set():
