@@ -22,6 +22,7 @@ from wristscan.daemon.cli._common import (
     EXIT_USAGE,
     QuietOpt,
     YesOpt,
+    check_number,
     check_out_folder,
     confirm_motion,
     fail,
@@ -40,14 +41,15 @@ T = TypeVar("T")
 
 ConfigOpt = Annotated[Path, typer.Option("--config", "-c", help="Configuration file of the cell.")]
 """``--config`` of the calibration procedures."""
-_BallRadiusOpt = Annotated[float, typer.Option("--ball-radius-mm", min=1.0)]
+_BallRadiusOpt = Annotated[float, typer.Option("--ball-radius-mm", help="Tooling ball radius.")]
 _StandoffOpt = Annotated[
     float,
-    typer.Option("--standoff-mm", min=1.0, help="Sensor origin to ball centre along sensor Z."),
+    typer.Option("--standoff-mm", help="Sensor origin to ball centre along sensor Z."),
 ]
 
 
 def _vec3(text: str | None, option: str) -> tuple[float, float, float] | None:
+    """``X,Y,Z`` (m); exit 2 naming ``option`` unless three finite numbers."""
     if text is None:
         return None
     try:
@@ -55,8 +57,13 @@ def _vec3(text: str | None, option: str) -> tuple[float, float, float] | None:
     except ValueError:
         vals = []
     if len(vals) != 3 or not all(math.isfinite(v) for v in vals):
-        raise typer.BadParameter(f"expected X,Y,Z in metres, got {text!r}", param_hint=option)
+        fail(f"{option}: expected X,Y,Z in metres, got {text!r}", EXIT_USAGE)
     return (vals[0], vals[1], vals[2])
+
+
+def _check_ball(ball_radius_mm: float, standoff_mm: float) -> None:
+    check_number("--ball-radius-mm", ball_radius_mm, ge=1)
+    check_number("--standoff-mm", standoff_mm, ge=1)
 
 
 def _run(fn: Callable[[], T]) -> T:
@@ -95,8 +102,6 @@ _SpanOpt = Annotated[
     float | None,
     typer.Option(
         "--span-deg",
-        min=30.0,
-        max=360.0,
         help="Angle range the plan covers from the current angle (default: a full turn, "
         "360 (n - 1) / n).",
     ),
@@ -140,15 +145,13 @@ def table(
     yes: YesOpt = False,
     angles: Annotated[
         int,
-        typer.Option(
-            "--angles", min=6, max=72, help="Table angles of the plan (>= 6), evenly spread."
-        ),
+        typer.Option("--angles", help="Table angles of the plan (>= 6), evenly spread."),
     ] = 8,
     span_deg: _SpanOpt = None,
     ball: _TableBallOpt = None,
     ball_radius_mm: _BallRadiusOpt = 12.7,
     standoff_mm: _StandoffOpt = 100.0,
-    speed_mm_s: Annotated[float, typer.Option("--speed-mm-s", min=1.0, help="Sweep speed.")] = 20.0,
+    speed_mm_s: Annotated[float, typer.Option("--speed-mm-s", help="Sweep speed.")] = 20.0,
     ball_height_mm: _BallHeightOpt = 0.0,
     out: _TableOutOpt = None,
     report: _TableReportOpt = None,
@@ -165,6 +168,12 @@ def table(
     from wristscan.daemon.calibrate.table_report import table_report
     from wristscan.daemon.io.calibfile import write_calibration
 
+    check_number("--angles", angles, ge=6, le=72)
+    check_number("--span-deg", span_deg, ge=30, le=360)
+    _check_ball(ball_radius_mm, standoff_mm)
+    check_number("--speed-mm-s", speed_mm_s, ge=1)
+    check_number("--ball-height-mm", ball_height_mm)
+    ball_m = _vec3(ball, "--ball-m")
     cfg = load_config_or_exit(config)
     target = out or cfg.calibration.table_file or Path("table.json")
     check_out_folder(target, "--out")
@@ -173,7 +182,7 @@ def table(
         options = TableOptions(
             n_angles=angles,
             span_rad=None if span_deg is None else math.radians(span_deg),
-            ball_guess_m=_vec3(ball, "--ball-m"),
+            ball_guess_m=ball_m,
             ball_radius_m=ball_radius_mm * 1e-3,
             standoff_m=standoff_mm * 1e-3,
             scan_speed_m_s=speed_mm_s * 1e-3,
@@ -255,7 +264,7 @@ def latency(
     speeds: _SpeedsOpt = "25,50,100",
     repeats: Annotated[
         int,
-        typer.Option("--repeats", min=1, max=20, help="Forward + backward sweep pairs per speed."),
+        typer.Option("--repeats", help="Forward + backward sweep pairs per speed."),
     ] = 1,
     ball: _LatencyBallOpt = None,
     ball_radius_mm: _BallRadiusOpt = 12.7,
@@ -278,6 +287,9 @@ def latency(
     )
 
     values = _speeds_m_s(speeds)
+    check_number("--repeats", repeats, ge=1, le=20)
+    _check_ball(ball_radius_mm, standoff_mm)
+    ball_m = _vec3(ball, "--ball-m")
     cfg = load_config_or_exit(config)
     check_out_folder(out, "--out")
     rep = report_path(out, report)
@@ -285,7 +297,7 @@ def latency(
         options = LatencyOptions(
             speeds_m_s=values,
             repeats=repeats,
-            ball_guess_m=_vec3(ball, "--ball-m"),
+            ball_guess_m=ball_m,
             ball_radius_m=ball_radius_mm * 1e-3,
             standoff_m=standoff_mm * 1e-3,
         )
@@ -310,10 +322,9 @@ def _speeds_m_s(speeds: str) -> tuple[float, ...]:
         if not all(math.isfinite(v) and v > 0 for v in values):
             raise ValueError
     except ValueError:
-        raise typer.BadParameter(
-            f"expected speeds in mm/s such as 25,50,100, got {speeds!r}",
-            param_hint="--speeds-mm-s",
-        ) from None
+        fail(
+            f"--speeds-mm-s: expected speeds in mm/s such as 25,50,100, got {speeds!r}", EXIT_USAGE
+        )
     return values
 
 

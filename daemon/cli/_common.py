@@ -12,10 +12,11 @@ fast.
 from __future__ import annotations
 
 import contextlib
+import math
 import signal
 import sys
 import threading
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from types import FrameType
 from typing import TYPE_CHECKING, Annotated, Any, NoReturn, overload
@@ -36,6 +37,7 @@ __all__ = [
     "QuietOpt",
     "StopSignal",
     "YesOpt",
+    "check_number",
     "check_out_folder",
     "confirm_motion",
     "fail",
@@ -70,6 +72,42 @@ def fail(message: str, code: int = EXIT_FAILED) -> NoReturn:
     """One line on stderr and the exit code (no traceback)."""
     typer.echo(f"error: {message}", err=True)
     raise typer.Exit(code)
+
+
+def _bounds_text(ge: float | None, gt: float | None, le: float | None, lt: float | None) -> str:
+    parts = [
+        f"{op} {b:g}" for op, b in ((">=", ge), (">", gt), ("<=", le), ("<", lt)) if b is not None
+    ]
+    return " and ".join(parts)
+
+
+def check_number(
+    option: str,
+    value: float | Sequence[float] | None,
+    *,
+    ge: float | None = None,
+    gt: float | None = None,
+    le: float | None = None,
+    lt: float | None = None,
+) -> None:
+    """Exit 2 with one line naming ``option`` unless ``value`` is a finite number within the
+    bounds given (``ge`` >=, ``gt`` >, ``le`` <=, ``lt`` <); every item of a sequence (a tuple or
+    repeated option) is checked, None (an option not given) passes. Every verb calls this for
+    each of its number options before it reads a file or opens a device::
+
+        check_number("--dwell-s", dwell_s, gt=0)  # error: --dwell-s: must be ... > 0 (got nan)
+    """
+    if value is None:
+        return
+    values = [value] if isinstance(value, int | float) else list(value)
+    for v in values:
+        ok = math.isfinite(v)
+        ok = ok and (ge is None or v >= ge) and (gt is None or v > gt)
+        ok = ok and (le is None or v <= le) and (lt is None or v < lt)
+        if not ok:
+            bounds = _bounds_text(ge, gt, le, lt)
+            what = "a finite number" + (f" {bounds}" if bounds else "")
+            fail(f"{option}: must be {what} (got {v:g})", EXIT_USAGE)
 
 
 def load_config_or_exit(path: Path | None) -> Config:

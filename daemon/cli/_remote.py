@@ -72,7 +72,7 @@ ModeOpt = Annotated[
 ]
 TimeoutOpt = Annotated[
     float,
-    typer.Option("--timeout", min=0.1, help="Seconds to wait for the daemon to answer."),
+    typer.Option("--timeout", help="Seconds to wait for the daemon to answer (>= 0.1)."),
 ]
 
 _ANY_ADDRESS = re.compile(r"^(?P<proto>[a-z-]+)/(?P<host>0\.0\.0\.0|\[::\])(?P<rest>:.*)$")

@@ -21,6 +21,7 @@ from wristscan.daemon.cli._common import (
     EXIT_USAGE,
     QuietOpt,
     YesOpt,
+    check_number,
     check_out_folder,
     confirm_motion,
     fail,
@@ -92,7 +93,6 @@ _BallRadiusOpt = Annotated[
     float | None,
     typer.Option(
         "--ball-radius-mm",
-        min=1.0,
         help="Tooling ball radius (default: the simulated ball, or 12.7 mm).",
     ),
 ]
@@ -108,18 +108,16 @@ _DepthMinOpt = Annotated[
 _DepthMaxOpt = Annotated[float | None, typer.Option("--depth-max-mm", help="Measuring range end.")]
 _OrientationsOpt = Annotated[
     int,
-    typer.Option("--orientations", min=2, max=12, help="Tilted orientations around the ball."),
+    typer.Option("--orientations", help="Tilted orientations around the ball."),
 ]
 _TiltOpt = Annotated[
     float,
-    typer.Option("--tilt-deg", min=45.0, max=80.0, help="Tilt of the orientations (>= 45 deg)."),
+    typer.Option("--tilt-deg", help="Tilt of the orientations (>= 45 deg)."),
 ]
 _LateralPlacesOpt = Annotated[
     int,
     typer.Option(
         "--lateral-places",
-        min=1,
-        max=2,
         help="Ball places along the laser line per tilted "
         "orientation (2: both ends; the rotation about the sensor Z axis needs the lever).",
     ),
@@ -137,15 +135,13 @@ def sensor(
     out: _OutOpt = None,
     report: _ReportOpt = None,
     manual: _ManualOpt = False,
-    speed_mm_s: Annotated[float, typer.Option("--speed-mm-s", min=1.0, help="Sweep speed.")] = 20.0,
+    speed_mm_s: Annotated[float, typer.Option("--speed-mm-s", help="Sweep speed.")] = 20.0,
     nominal: _NominalOpt = None,
     ball_radius_mm: _BallRadiusOpt = None,
     fov_width_mm: _FovWidthOpt = None,
     depth_min_mm: _DepthMinOpt = None,
     depth_max_mm: _DepthMaxOpt = None,
-    grid: Annotated[
-        int, typer.Option("--grid", min=2, max=5, help="Field-of-view grid (n x n).")
-    ] = 4,
+    grid: Annotated[int, typer.Option("--grid", help="Field-of-view grid (n x n).")] = 4,
     orientations: _OrientationsOpt = 10,
     tilt_deg: _TiltOpt = 52.0,
     lateral_places: _LateralPlacesOpt = 2,
@@ -167,6 +163,15 @@ def sensor(
     """
     from wristscan.calib import kinematics
 
+    check_number("--speed-mm-s", speed_mm_s, ge=1)
+    check_number("--ball-radius-mm", ball_radius_mm, ge=1)
+    check_number("--fov-width-mm", fov_width_mm, gt=0)
+    check_number("--depth-min-mm", depth_min_mm, gt=0)
+    check_number("--depth-max-mm", depth_max_mm, gt=0)
+    check_number("--grid", grid, ge=2, le=5)
+    check_number("--orientations", orientations, ge=2, le=12)
+    check_number("--tilt-deg", tilt_deg, ge=45, le=80)
+    check_number("--lateral-places", lateral_places, ge=1, le=2)
     cfg = load_config_or_exit(config)
     if cfg.sim is None and (fov_width_mm is None or depth_min_mm is None or depth_max_mm is None):
         fail(
@@ -369,7 +374,6 @@ _RobotSigmaOpt = Annotated[
     float,
     typer.Option(
         "--robot-sigma-mm",
-        min=0.0,
         help="Per-axis flange position error of a pose from the data sheet (the floor of the "
         "one estimated from the residuals).",
     ),
@@ -405,6 +409,7 @@ def import_(
     from wristscan.calib import pose_conventions as pc
     from wristscan.daemon.calibrate import imported
 
+    check_number("--robot-sigma-mm", robot_sigma_mm, ge=0)
     if poses not in pc.CONVENTIONS:
         fail(f"--poses: {poses!r} is not one of {', '.join(pc.CONVENTIONS)}", EXIT_USAGE)
     if units not in imported.UNITS:

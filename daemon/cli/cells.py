@@ -11,7 +11,14 @@ from typing import Annotated, Any
 
 import typer
 
-from wristscan.daemon.cli._common import EXIT_FAILED, EXIT_USAGE, fail, stop_on_signals, table
+from wristscan.daemon.cli._common import (
+    EXIT_FAILED,
+    EXIT_USAGE,
+    check_number,
+    fail,
+    stop_on_signals,
+    table,
+)
 from wristscan.daemon.cli._remote import (
     ConfigOpt,
     ConnectOpt,
@@ -43,6 +50,7 @@ def cells(
     timeout: TimeoutOpt = 3.0,
 ) -> None:
     """List the live cells (liveliness tokens under --root) with their state and counters."""
+    check_number("--timeout", timeout, ge=0.1)
     if not root or any(c in root for c in "*$?# ") or root.startswith("/"):
         fail(f"--root must be a plain zenoh key such as 'wristscan', got {root!r}", EXIT_USAGE)
     target = resolve_target(config, root.rstrip("/") + "/cells", connect, mode)

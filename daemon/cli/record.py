@@ -10,7 +10,6 @@ at all, also when the recording is stopped with Ctrl-C or SIGTERM.
 
 from __future__ import annotations
 
-import math
 import sys
 import threading
 import time
@@ -20,7 +19,14 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from wristscan.daemon.cli._common import EXIT_USAGE, fail, progress_bar, stop_on_signals, table
+from wristscan.daemon.cli._common import (
+    EXIT_USAGE,
+    check_number,
+    fail,
+    progress_bar,
+    stop_on_signals,
+    table,
+)
 from wristscan.daemon.cli._remote import (
     ConfigOpt,
     ConnectOpt,
@@ -302,10 +308,16 @@ def _pose_subscriber(client: CloudClient, out: Path) -> PoseSubscriber | None:
 
 
 def _check_options(
-    out: Path, ascii: bool, point_time: bool, force: bool, duration: float | None
+    out: Path,
+    ascii: bool,
+    point_time: bool,
+    force: bool,
+    numbers: tuple[float | None, int | None, float],
 ) -> None:
-    if duration is not None and not (math.isfinite(duration) and duration > 0):
-        fail(f"--duration must be a number of seconds > 0, got {duration}", EXIT_USAGE)
+    duration, points, timeout = numbers
+    check_number("--duration", duration, gt=0)
+    check_number("--points", points, ge=1)
+    check_number("--timeout", timeout, ge=0.1)
     from wristscan.daemon.io.cloudfile import FORMATS, CloudFormatError, cloud_format
 
     if out.suffix.lower() not in FORMATS:
@@ -348,7 +360,7 @@ def record(
         typer.Option("--duration", "-d", help="Stop after this many seconds."),
     ] = None,
     points: Annotated[
-        int | None, typer.Option("--points", "-n", min=1, help="Stop after this many points.")
+        int | None, typer.Option("--points", "-n", help="Stop after this many points (>= 1).")
     ] = None,
     ascii: Annotated[bool, typer.Option("--ascii", help="Write ASCII PLY (large, slow).")] = False,
     point_time: Annotated[
@@ -373,7 +385,7 @@ def record(
     ] = None,
 ) -> None:
     """Record the daemon's point clouds to a file until --duration, --points or Ctrl-C."""
-    _check_options(out, ascii, point_time, force, duration)
+    _check_options(out, ascii, point_time, force, (duration, points, timeout))
     target = resolve_target(config, prefix, connect, mode)
     with stop_on_signals() as stop:
         client = open_client(target, capacity=RING_CAPACITY)

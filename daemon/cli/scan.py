@@ -24,6 +24,7 @@ from wristscan.daemon.cli._common import (
     EXIT_OK,
     EXIT_USAGE,
     YesOpt,
+    check_number,
     confirm_motion,
     fail,
     load_config_or_exit,
@@ -65,20 +66,24 @@ def scan(
         "per pass), and the other outputs in the folder NAME.",
     ),
     voxel_mm: float = typer.Option(
-        0.25, "--voxel-mm", min=0.0, help="Voxel of the written clouds (mm); 0 keeps all points."
+        0.25, "--voxel-mm", help="Voxel of the written clouds (mm); 0 keeps all points."
     ),
     icp: bool = typer.Option(True, "--icp/--no-icp", help="Refine the passes with ICP."),
     max_correction_mm: float = typer.Option(
-        0.05, "--max-correction-mm", min=0.0, help="Flag passes whose ICP correction is larger."
+        0.05, "--max-correction-mm", help="Flag passes whose ICP correction is larger."
     ),
     max_correction_deg: float = typer.Option(
-        0.05, "--max-correction-deg", min=0.0, help="Flag passes turned more than this by ICP."
+        0.05, "--max-correction-deg", help="Flag passes turned more than this by ICP."
     ),
     surface: bool = typer.Option(
         False, "--surface", help="Also write a Poisson surface (needs wristscan[surface])."
     ),
 ) -> None:
     """Run a scan plan on the robot and merge the passes into one cloud in the plan frame."""
+    check_number("--joints-deg", joints_deg, ge=-360, le=360)
+    check_number("--voxel-mm", voxel_mm, ge=0)
+    check_number("--max-correction-mm", max_correction_mm, ge=0)
+    check_number("--max-correction-deg", max_correction_deg, ge=0)
     if ctx.invoked_subcommand is not None:
         return
     if plan is None or config is None:
@@ -271,6 +276,17 @@ def plan_cmd(
 
     if frame not in ("part", "base"):
         fail(f"--frame must be part or base, not {frame!r}", EXIT_USAGE)
+    check_number("--bbox-mm", bbox_mm)
+    check_number("--fov-mm", fov_mm, gt=0)
+    check_number("--overlap", overlap, ge=0, lt=0.95)
+    check_number("--standoff-mm", standoff_mm, gt=0)
+    check_number("--table-deg", table_deg)
+    check_number("--tilt-deg", tilt_deg, gt=-90, lt=90)
+    check_number("--yaw-deg", yaw_deg)
+    check_number("--depth-range-mm", depth_range_mm, gt=0)
+    check_number("--speed-mm-s", speed_mm_s, gt=0)
+    check_number("--travel-mm-s", travel_mm_s, gt=0)
+    check_number("--retract-mm", retract_mm, ge=0)
     lo, hi = bbox_mm[:3], bbox_mm[3:]
     try:
         plan = generate_plan(

@@ -14,7 +14,14 @@ from typing import Annotated, Any
 
 import typer
 
-from wristscan.daemon.cli._common import EXIT_FAILED, EXIT_USAGE, fail, stop_on_signals, table
+from wristscan.daemon.cli._common import (
+    EXIT_FAILED,
+    EXIT_USAGE,
+    check_number,
+    fail,
+    stop_on_signals,
+    table,
+)
 from wristscan.daemon.cli._remote import (
     ConfigOpt,
     ConnectOpt,
@@ -53,6 +60,7 @@ def list_cmd(
     """List the scans the daemon keeps, oldest first."""
     from wristscan.daemon.cloud.scans import fetch_jobs
 
+    check_number("--timeout", timeout, ge=0.1)
     target = resolve_target(config, prefix, connect, mode)
     with stop_on_signals():
         client = open_client(target, capacity=1, subscribe=False)
@@ -87,6 +95,7 @@ def fetch_cmd(
     from wristscan.daemon.io.archive import ArchiveError, check_name
     from wristscan.daemon.io.atomic import atomic_writer
 
+    check_number("--timeout", timeout, ge=0.1)
     try:
         check_name(job)
     except ArchiveError as exc:

@@ -9,6 +9,7 @@ import typer
 
 from wristscan.daemon.cli._common import (
     EXIT_FAILED,
+    check_number,
     fail,
     load_config_or_exit,
     stop_on_signals,
@@ -31,7 +32,6 @@ def register(app: typer.Typer) -> None:
         duration: float | None = typer.Option(
             None,
             "--duration",
-            min=0.0,
             help="Stop after this many seconds (default: run until Ctrl-C or SIGTERM).",
         ),
         as_json: bool = typer.Option(False, "--json", help="Print endpoints and truth as JSON."),
@@ -39,6 +39,7 @@ def register(app: typer.Typer) -> None:
         """Start the simulated cell (UR controller, sensor, rotary table) on loopback."""
         from wristscan.daemon.simcell.cell import start_cell
 
+        check_number("--duration", duration, ge=0)
         cfg = load_config_or_exit(config)
         try:
             cell = start_cell(cfg)

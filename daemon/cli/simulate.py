@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from wristscan.daemon.cli._common import EXIT_FAILED, EXIT_USAGE, fail, progress_bar
+from wristscan.daemon.cli._common import EXIT_FAILED, EXIT_USAGE, check_number, fail, progress_bar
 
 if TYPE_CHECKING:
     from wristscan.calib.montecarlo import StudyRow
@@ -136,14 +136,11 @@ def tcp(
         alphas = parse_alphas(alpha)
     except ValueError as exc:
         fail(str(exc), EXIT_USAGE)
-    if not 2 <= trials <= _MAX_TRIALS:
-        fail(f"--trials must be in [2, {_MAX_TRIALS}], got {trials}", EXIT_USAGE)
-    if not (math.isfinite(sigma) and sigma > 0):
-        fail(f"--sigma must be a positive number of millimetres, got {sigma}", EXIT_USAGE)
-    if poses != 0 and not 3 <= poses <= _MAX_POSES:
-        fail(f"--poses must be 0 (none) or in [3, {_MAX_POSES}], got {poses}", EXIT_USAGE)
-    if seed < 0:
-        fail(f"--seed must be >= 0, got {seed}", EXIT_USAGE)
+    check_number("--trials", trials, ge=2, le=_MAX_TRIALS)
+    check_number("--sigma", sigma, gt=0)
+    if poses != 0:
+        check_number("--poses", poses, ge=3, le=_MAX_POSES)
+    check_number("--seed", seed, ge=0)
     if plot is not None:
         try:
             import matplotlib  # noqa: F401

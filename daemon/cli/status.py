@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from wristscan.daemon.cli._common import EXIT_FAILED, fail, stop_on_signals, table
+from wristscan.daemon.cli._common import EXIT_FAILED, check_number, fail, stop_on_signals, table
 from wristscan.daemon.cli._remote import (
     ConfigOpt,
     ConnectOpt,
@@ -225,6 +225,7 @@ def status(
     timeout: TimeoutOpt = 3.0,
 ) -> None:
     """Show the daemon's status, counters and liveliness (exit 1 when no daemon answers)."""
+    check_number("--timeout", timeout, ge=0.1)
     target = resolve_target(config, prefix, connect, mode)
     with stop_on_signals() as stop:
         client = open_client(target, capacity=1, subscribe=False)

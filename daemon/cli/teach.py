@@ -26,6 +26,7 @@ from wristscan.daemon.cli._common import (
     EXIT_USAGE,
     CellConfigOpt,
     YesOpt,
+    check_number,
     confirm_motion,
     fail,
     load_config_or_exit,
@@ -80,6 +81,11 @@ def plane_cmd(
     from wristscan.daemon.procedure.errors import MotionNotConfirmed, ProcedureError
     from wristscan.daemon.teach.plane import PlaneOptions, teach_plane, write_plane_frame
 
+    check_number("--spacing-mm", spacing_mm, gt=0)
+    check_number("--spots", spots, ge=3, le=4)
+    check_number("--dwell-s", dwell_s, gt=0)
+    check_number("--speed-mm-s", speed_mm_s, gt=0)
+    check_number("--max-form-error-mm", flatness_mm, gt=0)
     try:
         options = PlaneOptions(
             spacing_m=mm(spacing_mm),
@@ -136,8 +142,9 @@ def measure_cmd(
     from wristscan.daemon.procedure.errors import MotionNotConfirmed, ProcedureError
     from wristscan.daemon.teach.measure import measure
 
-    if dwell_s <= 0 or sweep_mm < 0:
-        fail("--dwell-s must be positive and --sweep-mm >= 0", EXIT_USAGE)
+    check_number("--dwell-s", dwell_s, gt=0)
+    check_number("--sweep-mm", sweep_mm, ge=0)
+    check_number("--standoff-mm", standoff_mm, gt=0)
     cfg = load_config_or_exit(config)
     if sweep_mm > 0:
         confirm_motion(cfg, yes, "the measurement sweep")
@@ -223,6 +230,7 @@ def edge_model_cmd(
 
     if kind not in EDGE_KINDS:
         fail(f"--kind must be one of {', '.join(EDGE_KINDS)}", EXIT_USAGE)
+    check_number("--dwell-s", dwell_s, gt=0)
     cfg = load_config_or_exit(config)
     try:
         model = teach_edge_model(cfg, kind, dwell_s)
@@ -261,6 +269,11 @@ def edge_cmd(
 
     if direction not in (1, -1):
         fail("--direction must be 1 or -1", EXIT_USAGE)
+    check_number("--resolution-mm", resolution_mm, gt=0)
+    check_number("--length-mm", length_mm, gt=0)
+    check_number("--step-mm", step_mm, gt=0, le=20)
+    check_number("--standoff-mm", standoff_mm, gt=0)
+    check_number("--speed-mm-s", speed_mm_s, gt=0)
     try:
         options = EdgeOptions(
             resolution_m=mm(resolution_mm),
@@ -362,6 +375,10 @@ def replay_cmd(
         fail("--move must be movel or movep", EXIT_USAGE)
     if run and config is None:
         fail("--run needs --config (the robot to run on)", EXIT_USAGE)
+    _check_replay_numbers(
+        offset_mm, lead_deg, tilt_deg, speed_mm_s, accel, blend_mm, tolerance_mm, approach_mm
+    )
+    check_number("--timeout-s", timeout_s, gt=0)
     overrides = _given(
         offset_m=(offset_mm, 1e-3),
         lead_rad=(lead_deg, math.pi / 180),
@@ -394,6 +411,26 @@ def replay_cmd(
         except ReplayError as exc:
             fail(str(exc), EXIT_FAILED)
         typer.echo(f"run           {outcome}")
+
+
+def _check_replay_numbers(
+    offset_mm: float | None,
+    lead_deg: float | None,
+    tilt_deg: float | None,
+    speed_mm_s: float | None,
+    accel: float | None,
+    blend_mm: float | None,
+    tolerance_mm: float | None,
+    approach_mm: float | None,
+) -> None:
+    check_number("--offset-mm", offset_mm)
+    check_number("--lead-deg", lead_deg, gt=-90, lt=90)
+    check_number("--tilt-deg", tilt_deg, gt=-90, lt=90)
+    check_number("--speed-mm-s", speed_mm_s, gt=0)
+    check_number("--accel-m-s2", accel, gt=0)
+    check_number("--blend-mm", blend_mm, ge=0)
+    check_number("--tolerance-mm", tolerance_mm, ge=0)
+    check_number("--approach-mm", approach_mm, ge=0)
 
 
 def _given(**values: tuple[float | None, float]) -> dict[str, float]:

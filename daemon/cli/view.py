@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from wristscan.daemon.cli._common import EXIT_USAGE, fail, stop_on_signals, table
+from wristscan.daemon.cli._common import EXIT_USAGE, check_number, fail, stop_on_signals, table
 from wristscan.daemon.cli._remote import (
     ConfigOpt,
     ConnectOpt,
@@ -100,7 +100,7 @@ def view(
     stride: Annotated[
         int,
         typer.Option(
-            "--stride", min=1, help="Log every N-th point of a batch (lighter on CPU and disk)."
+            "--stride", help="Log every N-th point of a batch (lighter on CPU and disk; >= 1)."
         ),
     ] = 1,
     config: ConfigOpt = None,
@@ -111,8 +111,9 @@ def view(
 ) -> None:
     """Show a running daemon's live cloud, laser and flange trails, sensor pose and
     calibration in rerun (the viewer is spawned unless --record saves to a file)."""
-    if seconds is not None and seconds <= 0:
-        fail("--seconds must be > 0", EXIT_USAGE)
+    check_number("--seconds", seconds, gt=0)
+    check_number("--stride", stride, ge=1)
+    check_number("--timeout", timeout, ge=0.1)
     target = resolve_target(config, prefix, connect, mode)
     rec = _open_recording(record)
     from wristscan.daemon.view.live import LiveView

@@ -53,8 +53,15 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError
 
 from wristscan.calib import se3
-from wristscan.daemon.config import Config, format_validation_error
+from wristscan.daemon.config import format_validation_error
 from wristscan.daemon.io.atomic import write_atomic
+from wristscan.daemon.io.identity import (
+    RobotIdentity,
+    SensorIdentity,
+    identities,
+    identity_mismatch,
+    robot_serial,
+)
 from wristscan.daemon.io.urpose import ur_pose_text
 
 __all__ = [
@@ -70,6 +77,7 @@ __all__ = [
     "SensorIdentity",
     "identities",
     "read_calibration",
+    "robot_serial",
     "write_calibration",
 ]
 
@@ -111,40 +119,6 @@ def _software_version() -> str:
         return version("wristscan")
     except PackageNotFoundError:
         return "unknown"
-
-
-@dataclass(frozen=True)
-class RobotIdentity:
-    """The robot a calibration belongs to."""
-
-    model: str
-    """UR model name (``UR5e``)."""
-    serial: str | None = None
-    """Controller serial number; None when unknown."""
-
-    def describe(self) -> str:
-        return self.model + (f" serial {self.serial}" if self.serial else "")
-
-
-@dataclass(frozen=True)
-class SensorIdentity:
-    """The sensor a calibration belongs to."""
-
-    driver: str
-    """Driver name (``lpf1-udp``, ``rf627-udp``, ...)."""
-    id: str | None = None
-    """Sensor id or serial number as the device reports it; None when unknown."""
-
-    def describe(self) -> str:
-        return self.driver + (f" id {self.id}" if self.id else "")
-
-
-def identities(cfg: Config) -> tuple[RobotIdentity, SensorIdentity]:
-    """The robot and sensor of ``cfg`` as a calibration file records them."""
-    sid = cfg.sensor.sensor_id
-    return RobotIdentity(cfg.robot.model), SensorIdentity(
-        cfg.sensor.driver, None if sid is None else str(sid)
-    )
 
 
 @dataclass(frozen=True)
@@ -479,26 +453,9 @@ def _check_identity(
     expect_robot: RobotIdentity | None,
     expect_sensor: SensorIdentity | None,
 ) -> None:
-    hint = "; recalibrate, or set calibration.check_identity = false to use it anyway"
-    if expect_robot is not None:
-        r = calib.robot
-        if r.model != expect_robot.model or (
-            expect_robot.serial is not None and r.serial != expect_robot.serial
-        ):
-            raise CalibrationFileError(
-                path,
-                f"made for robot {r.describe()}, but this robot is {expect_robot.describe()}{hint}",
-            )
-    if expect_sensor is not None:
-        s = calib.sensor
-        if s.driver != expect_sensor.driver or (
-            expect_sensor.id is not None and s.id != expect_sensor.id
-        ):
-            raise CalibrationFileError(
-                path,
-                f"made for sensor {s.describe()}, but this sensor is {expect_sensor.describe()}"
-                f"{hint}",
-            )
+    problem = identity_mismatch(calib.robot, calib.sensor, expect_robot, expect_sensor)
+    if problem is not None:
+        raise CalibrationFileError(path, problem)
 
 
 def read_calibration(

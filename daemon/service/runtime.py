@@ -463,7 +463,8 @@ class Service:
     def run(self) -> int:
         try:
             cfg = load_config(self.config_path)
-            setup = load_setup(cfg, self.uncalibrated)
+            # The controller may not be up yet: its serial number is checked once it answers.
+            setup = load_setup(cfg, self.uncalibrated, ask_controller=False)
         except (ConfigError, CalibrationFileError, StartupError) as exc:
             log.error("%s", exc)
             return 2

@@ -47,16 +47,23 @@ def one_line(exc: BaseException) -> str:
     return " ".join(_RUST_AT.sub("", str(exc)).split()) or type(exc).__name__
 
 
-def _identities(cfg: Config) -> tuple[RobotIdentity | None, SensorIdentity | None]:
+def _identities(
+    cfg: Config, ask_controller: bool
+) -> tuple[RobotIdentity | None, SensorIdentity | None]:
     """The identities a calibration file must match, or (None, None) when the configuration
     does not check them."""
-    return identities(cfg) if cfg.calibration.check_identity else (None, None)
+    if not cfg.calibration.check_identity:
+        return None, None
+    return identities(cfg, ask_controller=ask_controller)
 
 
-def load_setup(cfg: Config, uncalibrated: bool = False) -> AlignmentSetup:
+def load_setup(
+    cfg: Config, uncalibrated: bool = False, ask_controller: bool = True
+) -> AlignmentSetup:
     """The alignment the configuration asks for; raises ``CalibrationFileError`` or
-    ``StartupError`` with a message for the operator."""
-    robot_id, sensor_id = _identities(cfg)
+    ``StartupError`` with a message for the operator. ``ask_controller`` False: the robot's
+    serial number is not asked for (before the devices are open; checked again once they are)."""
+    robot_id, sensor_id = _identities(cfg, ask_controller)
     c = cfg.calibration
     frame = cfg.pipeline.frame
     if c.file is None:

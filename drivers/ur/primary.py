@@ -1,4 +1,5 @@
-"""A small client for the UR primary interface (TCP 30001): the factory kinematics only.
+"""Small clients for what a UR controller says about the arm itself: the factory kinematics
+(primary interface, TCP 30001) and the serial number (dashboard server, TCP 29999).
 
 Every UR arm is calibrated at the factory; the controller reports the resulting DH parameters in
 the ``KinematicsInfo`` sub-package of its ROBOT_STATE messages (PROTOCOLS.md, "UR kinematics").
@@ -17,13 +18,19 @@ expresses them as deltas on a nominal model for
 :func:`wristscan.calib.kinematics.with_deltas`. The raw values can look odd (large ``d`` of
 joints 2/3 that cancel): forward kinematics with them is still exact.
 
-A plain blocking socket with timeouts: waiting releases the GIL, so it does not stall other
+The serial number: the dashboard server (a line-based text protocol: a welcome line, then one
+reply line per command line) answers ``get serial number`` with the controller's serial from
+PolyScope 5.6 on; older software replies ``could not understand: ...``
+(:func:`read_serial_number` then returns None).
+
+Plain blocking sockets with timeouts: waiting releases the GIL, so it does not stall other
 threads of the caller.
 """
 
 from __future__ import annotations
 
 import logging
+import re
 import socket
 import struct
 import time
@@ -37,6 +44,7 @@ from wristscan.calib import kinematics
 from wristscan.drivers.base import DriverIOError, DriverTimeout
 
 __all__ = [
+    "DASHBOARD_PORT",
     "MSG_ROBOT_STATE",
     "PRIMARY_PORT",
     "SUB_KINEMATICS_INFO",
@@ -46,11 +54,13 @@ __all__ = [
     "iter_subpackages",
     "parse_kinematics_info",
     "read_kinematics_info",
+    "read_serial_number",
 ]
 
 log = logging.getLogger(__name__)
 
 PRIMARY_PORT = 30001
+DASHBOARD_PORT = 29999
 MSG_ROBOT_STATE = 16
 SUB_KINEMATICS_INFO = 5
 
@@ -58,6 +68,7 @@ _MSG_HEADER = struct.Struct(">iB")
 _SUB_HEADER = struct.Struct(">IB")
 _KIN_BODY = struct.Struct(">6I24dI")  # checksum, theta, a, d, alpha, calibration_status
 _MAX_MESSAGE = 1 << 20  # a primary message is a few kB; anything larger means lost framing
+_SERIAL = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 
 
 class PrimaryInterfaceError(DriverIOError):
@@ -202,3 +213,49 @@ def read_kinematics_info(
         f"no KinematicsInfo from {host}:{port} within {timeout_s:g} s "
         f"(messages seen by type: {seen or 'none'})"
     )
+
+
+def _read_line(sock: socket.socket, buf: bytearray, deadline: float, where: str) -> str:
+    """The next line of a text protocol (without its end), reading into ``buf``."""
+    while b"\n" not in buf:
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            raise DriverTimeout(f"{where}: no reply line in time")
+        sock.settimeout(remaining)
+        try:
+            data = sock.recv(4096)
+        except TimeoutError:
+            raise DriverTimeout(f"{where}: no reply line in time") from None
+        if not data:
+            raise PrimaryInterfaceError(f"{where} closed the connection")
+        buf += data
+        if len(buf) > 65536:
+            raise PrimaryInterfaceError(f"{where}: a reply line over 64 kB: not a dashboard?")
+    line, _, rest = bytes(buf).partition(b"\n")
+    buf[:] = rest
+    return line.decode("utf-8", "replace").strip()
+
+
+def read_serial_number(host: str, port: int = DASHBOARD_PORT, timeout_s: float = 5.0) -> str | None:
+    """The controller's serial number from its dashboard server (``get serial number``), or
+    None when the controller's software does not know the command (before PolyScope 5.6).
+
+    Raises :class:`DriverTimeout` when no reply comes within ``timeout_s`` seconds,
+    :class:`PrimaryInterfaceError` for a closed connection, ``OSError`` when the connection is
+    refused.
+    """
+    where = f"dashboard {host}:{port}"
+    deadline = time.monotonic() + timeout_s
+    buf = bytearray()
+    with socket.create_connection((host, port), timeout=timeout_s) as sock:
+        _read_line(sock, buf, deadline, where)  # the welcome line
+        sock.sendall(b"get serial number\n")
+        reply = _read_line(sock, buf, deadline, where)
+        try:
+            sock.sendall(b"quit\n")
+        except OSError:
+            pass  # the answer is in; a server that closed first is no error
+    if _SERIAL.fullmatch(reply) is None:
+        log.info("%s: no serial number (reply %r)", where, reply[:80])
+        return None
+    return reply

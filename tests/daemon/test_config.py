@@ -114,8 +114,9 @@ def test_default_is_the_simulated_cell() -> None:
     assert cfg.calibration.file is None
     assert cfg.sim is not None
     assert cfg.sim.sensor.n_points == 2048 and cfg.sim.sensor.kind == "lpf1-udp"
+    # the sensor 0.1 m from the tooling ball, the laser line across it (issue 22)
     assert cfg.sim.controller.q0_rad == pytest.approx(
-        (0.0, -math.pi / 2, math.pi / 2, -math.pi / 2, -math.pi / 2, 0.0)
+        tuple(math.radians(a) for a in (-15.23, -174.02, 58.1, 25.92, -90.0, -15.23))
     )
 
 
@@ -377,7 +378,7 @@ CASES: list[tuple[str, str, str, str, list[str]]] = [
         "driver",
         [
             "sensor.driver: unknown sensor driver 'lpf1-udpx' (did you mean 'lpf1-udp'?); known: "
-            "lpf1-udp, lpf1-tcp, lpf1-serial, rf627-udp, scip"
+            "lpf1-udp, lpf1-tcp, lpf1-serial, rf627-udp, scip, gocator"
         ],
     ),
     (
@@ -519,7 +520,7 @@ def test_parse_config_returns_a_config() -> None:
 
 def test_check_config_ok(capsys: pytest.CaptureFixture[str]) -> None:
     path = str(ROOT / "config" / "ur10e-lpf1-serial-table.toml")
-    assert main(["check-config", path]) == 0
+    assert main(["check-config", "--no-files", path]) == 0
     out = capsys.readouterr().out
     assert out.splitlines()[0] == f"{path}: OK (schema_version 1)"
     assert "UR10e at 192.168.2.10" in out and "modbus rtu /dev/ttyUSB1" in out

@@ -98,7 +98,7 @@ def _query(target: DashboardTarget, low: str) -> str | None:
         return f"URSoftware {major}.{minor}.{bugfix}.{build} (Jan 01 2024)"
     if low == "version":
         return f"{major}.{minor}.{bugfix}.{build}"
-    if low == "get serial number":
+    if low == "get serial number" and not (major == 5 and minor < 6):  # e-Series: from 5.6
         return target.serial_number
     if low == "get robot model":
         # The dashboard names the arm family without the e-Series suffix.

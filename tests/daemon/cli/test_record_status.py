@@ -317,9 +317,9 @@ def _no_daemon(nobody: list[str], tmp_path: Path) -> None:
         (["-o", "missing/scan.ply"], "the folder of --out does not exist"),
         (["-o", "scan.ply", "--mode", "router"], "--mode must be 'peer' or 'client'"),
         (["-o", "scan.ply", "--prefix", "wristscan/*"], "--prefix must be a plain zenoh key"),
-        (["-o", "scan.ply", "-d", "nan"], "--duration must be a number of seconds > 0, got nan"),
-        (["-o", "scan.ply", "-d", "inf"], "--duration must be a number of seconds > 0, got inf"),
-        (["-o", "scan.ply", "-d", "-1"], "--duration must be a number of seconds > 0"),
+        (["-o", "scan.ply", "-d", "nan"], "--duration: must be a finite number > 0 (got nan)"),
+        (["-o", "scan.ply", "-d", "inf"], "--duration: must be a finite number > 0 (got inf)"),
+        (["-o", "scan.ply", "-d", "-1"], "--duration: must be a finite number > 0 (got -1)"),
     ],
 )
 def test_record_user_errors(

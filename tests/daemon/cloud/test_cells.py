@@ -119,4 +119,6 @@ def test_no_cell_is_exit_1_and_a_bad_root_is_a_usage_error(router: str) -> None:
     res = CliRunner().invoke(app, ["cells", "--root", "wristscan/*", "--connect", router])
     assert res.exit_code == 2 and "--root must be a plain zenoh key" in res.output
     res = CliRunner().invoke(app, ["cells", "--timeout", "nan", "--connect", router])
-    assert res.exit_code == 2 and "--timeout" in res.output and "Traceback" not in res.output
+    assert (
+        res.exit_code == 2 and "--timeout: must be a finite number >= 0.1 (got nan)" in res.output
+    )

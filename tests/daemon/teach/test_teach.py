@@ -302,7 +302,7 @@ def test_cli_refusals(tmp_path: Path) -> None:
     r = runner.invoke(app, ["teach", "edge", "--config", str(cfg), "--edge-model", "nope.toml"])
     assert r.exit_code == 2
     r = runner.invoke(app, ["teach", "plane", "--config", str(cfg), "--yes", "--spots", "5"])
-    assert r.exit_code == 2 and "n_spots" in r.output
+    assert r.exit_code == 2 and "--spots" in r.output
     p = tmp_path / "p.json"
     p.write_text("{}")
     r = runner.invoke(app, ["teach", "replay", "--path", str(p), "--tool", "p[1,2]"])
