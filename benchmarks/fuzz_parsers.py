@@ -11,7 +11,11 @@ truncation, insertion (1-8 random bytes), deletion (1-8 bytes) and a corrupted l
   driver's check of the value count) must give 0 for single-byte damage and truncation, and its
   rate for multi-byte damage is reported; RF627 carries no checksum: the undetected rate is
   reported, for the codec alone and for the driver's stream checks (header lock, counter/clock
-  agreement), and truncation/insertion/deletion/length damage must always be caught.
+  agreement), and truncation/insertion/deletion/length damage must always be caught. The same
+  holds for the Gocator (a TCP stream without checksum): a damaged message group between intact
+  ones goes through the stream reader and the driver's checks (``_consume``: resynchronisation,
+  the lookahead on the next header, the stream lock, frame index/timestamp agreement); Gocator
+  length fields are the message sizes, stamp count and size, ``attributeSize``, count, width.
 
 Run: ``.venv/bin/python benchmarks/fuzz_parsers.py [--n 100000] [--seed 1] [--json out.json]``
 """
@@ -35,8 +39,9 @@ sys.path.insert(0, str(Path(__file__).parents[1] / "tests"))
 from _report import Figure, report
 from support import same_profile
 
-from wristscan.drivers import lpf1, lpf1_reader, rf627, scip
+from wristscan.drivers import gocator, lpf1, lpf1_reader, rf627, scip
 from wristscan.drivers.records import Profile
+from wristscan.drivers.sensor_gocator import GocatorSensor
 from wristscan.drivers.sensor_rf627 import Rf627Sensor
 
 MUTATIONS = ("byte", "bit", "truncate", "insert", "delete", "length")
@@ -51,10 +56,10 @@ SINGLE = ("bit", "truncate")
 
 
 def mutate(frame: bytes, kind: str, rng: np.random.Generator, length_fields: list[tuple[int, int]],
-           ) -> bytes:  # fmt: skip
-    """A damaged copy of ``frame`` (always different from it)."""
+           head: int = rf627.HEADER_LEN) -> bytes:  # fmt: skip
+    """A damaged copy of ``frame`` (always different from it); ``hbyte``/``hbit`` damage the
+    first ``head`` bytes."""
     if kind in ("hbyte", "hbit"):
-        head = rf627.HEADER_LEN
         return mutate(frame[:head], kind[1:], rng, length_fields) + frame[head:]
     b = bytearray(frame)
     n = len(b)
@@ -408,6 +413,60 @@ def fuzz_rf627_driver(n: int, rng: np.random.Generator) -> Outcome:
     return out
 
 
+GOCATOR_LENGTHS = [(0, 4), (6, 4), (10, 2), (70, 4), (76, 2), (78, 4), (82, 4)]
+GOCATOR_HEAD = 70 + 48
+"""A stamp message and the profile message's header."""
+
+
+def fuzz_gocator_driver(n: int, rng: np.random.Generator) -> Outcome:
+    """Intact message groups alternating with damaged ones through the driver's stream path;
+    a delivered profile must be the intact profile of its frame index."""
+    period_us, batch, width = 1000, 500, 512
+    encoders = [gocator.GocatorEncoder(5, width, intensity=True),
+                gocator.GocatorEncoder(5, width, uniform=False)]  # fmt: skip
+    x = np.linspace(-0.025, 0.025, width)
+    zs = rng.uniform(0.06, 0.14, (2 * batch, width))
+    inten = rng.integers(1, 256, (2 * batch, width))
+    out = Outcome("gocator driver checks")
+    t0 = time.perf_counter()
+    count = 0
+    for e, enc in enumerate(encoders):
+        drv = GocatorSensor("127.0.0.1")
+        expect: dict[int, Profile] = {}
+        kind_of: dict[int, str] = {}
+        groups: list[bytes] = []
+        for i in range(n // 2 if e == 0 else n - n // 2):
+            if i % batch == 0:
+                counters = np.arange(count, count + 2 * batch)
+                groups = enc.encode(counters, counters * period_us, x, zs, True, inten)
+                ref = GocatorSensor("127.0.0.1")
+                ref._consume(b"".join(groups) + groups[0][:16], 0)
+                expect.update({p.frame_counter: p for p in ref._ready})
+                count += 2 * batch
+            j = 2 * (i % batch)
+            kind = RF627_MUTATIONS[i % len(RF627_MUTATIONS)]
+            bad = mutate(groups[j + 1], kind, rng, GOCATOR_LENGTHS, GOCATOR_HEAD)
+            # Its last message is released by the next group's header: judged next time.
+            kind_of[count - 2 * batch + j + 1] = kind
+            out.n += 1
+            out.by_kind[kind] += 1
+            try:
+                drv._consume(groups[j] + bad, 0)
+            except Exception as exc:
+                out.escape(kind, exc)
+                continue
+            for p in drv._ready:  # the damaged frames have the odd indices
+                intact = expect.get(p.frame_counter)
+                if intact is None or not same_profile(p, intact):
+                    out.bogus[kind_of.get(p.frame_counter, kind)] += 1
+                elif p.frame_counter % 2:
+                    out.identical += 1
+            drv._ready.clear()
+    out.rejected = out.n - out.identical - out.n_bogus
+    out.seconds = time.perf_counter() - t0
+    return out
+
+
 def scip_frames(rng: np.random.Generator, n_values: int = 181) -> list[tuple[bytes, bool]]:
     out = []
     for k in range(6):
@@ -505,6 +564,7 @@ def run(n: int = 100_000, seed: int = 1, json_out: str | None = None) -> int:
         fuzz_lpf1_serial(n, rng),
         fuzz_rf627(n, rng),
         fuzz_rf627_driver(n, rng),
+        fuzz_gocator_driver(n, rng),
         fuzz_scip(n, rng),
         fuzz_scip_info(max(1, n // 4), rng),
     ]

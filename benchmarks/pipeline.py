@@ -45,7 +45,9 @@ as the unit runs it. ``--load N`` adds N busy processes of default priority, eac
 its own, on the daemon's CPUs: other work on the cell PC.
 
 Run: ``.venv/bin/python benchmarks/pipeline.py [--duration 20] [--rates 1000,5000]
-[--json out.json] [--workdir DIR] [--profile PREFIX] [--load N]``; exits 1 when a target is
+[--json out.json] [--workdir DIR] [--profile PREFIX] [--load N] [--sensor lpf1|gocator]``
+(``--sensor gocator``: the same with the LMI Gocator pair; the kernel UDP drop figures are then
+zero, the sensor's bytes go over TCP); exits 1 when a target is
 missed. Targets
 (every rate): no profile lost, no batch lost, published/sent >= 0.99, latency p99 (from the true
 exposures) <= 20 ms.
@@ -200,6 +202,22 @@ their own."""
 _CPUS = frozenset(os.sched_getaffinity(0))
 """The CPUs this benchmark may use (read before it pins itself to the cell's)."""
 _CELL_CPUS = {max(_CPUS)}
+
+_SENSOR = "lpf1"
+"""The sensor pair (``--sensor``): ``lpf1`` (LPF1 over UDP) or ``gocator`` (the LMI Gocator
+Protocol over TCP, the simulated Gocator on the cell's loopback address)."""
+
+
+def _use_sensor(doc: dict[str, Any]) -> dict[str, Any]:
+    """Switch the configuration document to the ``--sensor`` pair; the simulated sensor's
+    overrides for ``start_cell``."""
+    if _SENSOR == "gocator":
+        host = doc["robot"]["host"]
+        doc["sensor"]["driver"] = "gocator"
+        doc["sensor"]["options"] = {"host": host}
+        doc["sim"]["sensor"]["kind"] = "gocator"
+        return {"host": host}
+    return {}
 
 
 def _pin_away_from_cell(pid: int) -> None:
@@ -583,13 +601,14 @@ def measure_pipeline(
         }
     )
     doc.pop("table", None)
+    sensor_overrides = _use_sensor(doc)
     cfg_path = tmp / "cell.toml"
     cfg_path.write_text(dump_toml(doc))
     cfg = load_config(cfg_path)
     endpoint = cfg.zenoh.listen[0]
     if _SPLIT_CORES:
         os.sched_setaffinity(0, _CELL_CPUS)  # the cell's processes inherit it
-    cell = start_cell(cfg)
+    cell = start_cell(cfg, **sensor_overrides)
     notify = _Notify(tmp / "notify.sock")
     daemon: subprocess.Popen[bytes] | None = None
     sub: subprocess.Popen[str] | None = None
@@ -650,7 +669,8 @@ def measure_pipeline(
         if nice is not None:
             _set_session_nice(sub.pid, nice)
 
-        port = int(cfg.sensor.options.port)  # type: ignore[union-attr]
+        # The UDP socket's kernel drops (none with the Gocator: its profiles come over TCP).
+        port = -1 if _SENSOR == "gocator" else int(cfg.sensor.options.port)  # type: ignore[union-attr]
         with CloudClient(cfg.zenoh.prefix, connect=[endpoint], subscribe=False) as client:
             # Settle: the clock fits lock, then warmup_s of steady publishing.
             deadline = time.monotonic() + 60.0
@@ -1330,9 +1350,17 @@ def main(argv: list[str] | None = None) -> int:
         "sensor and the controller are machines of their own; --no-split-cores lets them "
         "compete for every CPU",
     )
+    ap.add_argument(
+        "--sensor",
+        choices=("lpf1", "gocator"),
+        default="lpf1",
+        help="the sensor pair: lpf1 (LPF1 over UDP, default) or gocator (the LMI Gocator "
+        "Protocol over TCP and the simulated Gocator)",
+    )
     ns = ap.parse_args(args)
-    global _SPLIT_CORES
+    global _SPLIT_CORES, _SENSOR
     _SPLIT_CORES = bool(ns.split_cores) and len(_CPUS) >= 2
+    _SENSOR = ns.sensor
     rates = tuple(float(x) for x in ns.rates.split(","))
     return run(
         rates,

@@ -3,8 +3,9 @@
 1. In process, per CPU second of the decoding thread: prebuilt wire units (2048-point
    profiles; SCIP: a 1081-step scan) go through each driver's own decode path (``_on_datagram``
    for the UDP drivers, ``_consume`` for the stream drivers: framing, CRC/checksums, the
-   vectorised decode, counter bookkeeping, the queue). Target: >= 20 M points/s for LPF1 and
-   RF627; the others are reported.
+   vectorised decode, counter bookkeeping, the queue). Target: >= 20 M points/s for LPF1,
+   RF627 and the Gocator (uniform profiles: Stamp and profile message per frame); the others
+   are reported.
 2. Through a real UDP socket: a sender process blasts prebuilt datagrams at the driver, which
    reads them with ``read()``: points per CPU second of the reading thread (target as above;
    receive system calls included) and profiles per wall-clock second (reported: the sender
@@ -33,7 +34,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 from _report import Figure, report
 
-from wristscan.drivers import lpf1, rf627, scip
+from wristscan.drivers import gocator, lpf1, rf627, scip
+from wristscan.drivers.sensor_gocator import GocatorSensor
 from wristscan.drivers.sensor_lpf1 import Lpf1SerialSensor, Lpf1TcpSensor, Lpf1UdpSensor
 from wristscan.drivers.sensor_rf627 import Rf627Sensor
 from wristscan.drivers.sensor_scip import ScipSensor
@@ -69,6 +71,17 @@ def scip_replies(count: int, n_steps: int = 1081) -> list[bytes]:
         scip.scan_reply(echo[:13] + b"00", b"99", 25 * k, rng.integers(20, 30000, n_steps))
         for k in range(count)
     ]
+
+
+def gocator_stream(count: int, start: int = 0) -> bytes:
+    """Uniform profile groups (Stamp + profile), then the next Stamp's header, which releases
+    the last profile (the reader looks at the next header before trusting a message's end)."""
+    rng = np.random.default_rng(4)
+    z = rng.uniform(0.06, 0.14, (count + 1, N_POINTS))
+    enc = gocator.GocatorEncoder(1, N_POINTS)
+    counters = np.arange(start, start + count + 1)
+    groups = enc.encode(counters, counters * PERIOD_NS // 1000, 0, z, rng.random(z.shape) > 0.05)
+    return b"".join(groups[:-1]) + groups[-1][:16]
 
 
 def _scip_driver(n_steps: int = 1081) -> ScipSensor:
@@ -137,6 +150,8 @@ def in_process(count: int) -> list[Figure]:
          feed_stream(b"".join(lpf1.cobs_frame(m) for m in msgs)), count, N_POINTS, False),
         ("scip", _scip_driver, feed_stream(b"".join(scip_replies(count // 4))), count // 4,
          1081, False),
+        ("gocator", lambda: GocatorSensor("127.0.0.1"), feed_stream(gocator_stream(count)),
+         count, N_POINTS, True),
     ]  # fmt: skip
     for name, make, feed, n_prof, n_pts, targeted in cases:
         if name == "lpf1-serial":

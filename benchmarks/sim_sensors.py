@@ -3,8 +3,10 @@
 Every sensor sends 2048-point profiles (SCIP: 2048 steps over 180 degrees) in standalone mode
 (a still flange above the tooling ball) to a receiver in this process that reads the real
 transport and counts what arrives. Targets: LPF1-UDP and RF627 >= 0.95 at 1 and 5 kHz; the other
-figures are reported (TCP, pty and SCIP text encoding limit them). Also reported: the ray-casting
-cost with a moving pose (no cache), which bounds the rate of a sensor on a moving robot.
+figures are reported (TCP, pty and SCIP text encoding limit them; the Gocator is started on
+its control channel and its data channel's Stamp messages are counted). Also reported: the
+ray-casting cost with a moving pose (no cache), which bounds the rate of a sensor on a moving
+robot.
 
 Run: ``.venv/bin/python benchmarks/sim_sensors.py [--window 1.5] [--json out.json]``
 """
@@ -15,6 +17,7 @@ import argparse
 import os
 import selectors
 import socket
+import struct
 import sys
 import time
 from pathlib import Path
@@ -24,6 +27,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 from _report import Figure, report
 
+from wristscan.drivers import gocator
 from wristscan.drivers.sim.laser import LaserModel
 from wristscan.drivers.sim.scene import demo_scene, sensor_looking_down
 from wristscan.drivers.sim.sensors import KINDS, SensorSimConfig, SimulatedSensor
@@ -39,6 +43,8 @@ def _config(kind: str, rate: float, target: tuple[str, int] | None) -> SensorSim
         extra["target"] = target
     if kind.startswith("scip"):
         extra["scip_ares"] = 4096
+    if kind == "gocator":
+        extra["port"] = 0  # three free ports rather than the standard ones
     return SensorSimConfig.for_kind(kind, **extra)  # type: ignore[arg-type]
 
 
@@ -50,8 +56,9 @@ def _count(kind: str, sim: SimulatedSensor, udp: socket.socket | None, window_s:
     fd: int | None = None
     if udp is not None:
         sel.register(udp, selectors.EVENT_READ)
-    elif kind.endswith("tcp"):
-        stream = socket.create_connection((sim.endpoint["host"], sim.endpoint["port"]), 5)
+    elif kind.endswith("tcp") or kind == "gocator":
+        port = sim.endpoint["data_port" if kind == "gocator" else "port"]
+        stream = socket.create_connection((sim.endpoint["host"], port), 5)
         stream.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 8 << 20)
         sel.register(stream, selectors.EVENT_READ)
     else:
@@ -69,7 +76,12 @@ def _count(kind: str, sim: SimulatedSensor, udp: socket.socket | None, window_s:
         else:
             assert fd is not None
             os.write(fd, cmd)
-    marker = {"lpf1-tcp": b"LPF1", "lpf1-serial": b"\x00"}.get(kind, b"\n\n")
+    control = None
+    if kind == "gocator":  # Start on the control channel; count the Stamp headers
+        control = socket.create_connection((sim.endpoint["host"], sim.endpoint["port"]), 5)
+        control.sendall(gocator.encode_command(gocator.Cmd.START))
+    stamp_head = struct.pack("<IHIH", 70, gocator.Msg.STAMP, 1, gocator.STAMP_SIZE)
+    marker = {"lpf1-tcp": b"LPF1", "lpf1-serial": b"\x00", "gocator": stamp_head}.get(kind, b"\n\n")
     buf = bytearray(1 << 20)
     count = 0
     tail = b""
@@ -103,6 +115,8 @@ def _count(kind: str, sim: SimulatedSensor, udp: socket.socket | None, window_s:
         sel.close()
         if stream is not None:
             stream.close()
+        if control is not None:
+            control.close()
         if fd is not None:
             os.close(fd)
     return count

@@ -41,6 +41,7 @@ BUILTIN: dict[Kind, dict[str, _Builtin]] = {
         "lpf1-serial": _Builtin(".sensor_lpf1:Lpf1SerialSensor", None, "LPF1 over serial (COBS)"),
         "rf627-udp": _Builtin(".sensor_rf627:Rf627Sensor", None, "Riftek RF627 UDP stream"),
         "scip": _Builtin(".sensor_scip:ScipSensor", None, "Hokuyo SCIP 2.0 (serial or TCP)"),
+        "gocator": _Builtin(".sensor_gocator:GocatorSensor", None, "LMI Gocator Protocol (TCP)"),
     },
     "robots": {
         "ur-rtde": _Builtin(".ur.robot:URRobot", None, "Universal Robots over RTDE (ur-rtde)"),

@@ -21,19 +21,32 @@ def register(app: typer.Typer) -> None:
         voxel_mm: float = typer.Option(
             0.5, "--voxel-mm", min=0.01, help="Voxel size of the merged cloud (mm)."
         ),
+        sensor: str = typer.Option(
+            "lpf1",
+            "--sensor",
+            help="The sensor pair: lpf1 (LPF1 over UDP), rf627 (Riftek RF627) or gocator "
+            "(LMI Gocator Protocol), each with its simulated counterpart.",
+        ),
     ) -> None:
         """Scan the demo part on the simulated cell and write the merged cloud."""
         import time
 
-        from wristscan.daemon.simcell.demo import run_demo
+        from wristscan.daemon.simcell.demo import SENSORS, run_demo
 
+        if sensor not in SENSORS:
+            fail(f"--sensor must be one of {', '.join(SENSORS)}, not {sensor!r}", EXIT_USAGE)
         if out.suffix.lower() != ".ply":
             fail(f"--out must name a .ply file, not {out}", EXIT_USAGE)
         if not out.parent.exists():
             fail(f"folder {out.parent} does not exist", EXIT_USAGE)
         t0 = time.monotonic()
         try:
-            res = run_demo(out, voxel_m=voxel_mm * 1e-3, progress=lambda m: typer.echo(f"- {m}"))
+            res = run_demo(
+                out,
+                voxel_m=voxel_mm * 1e-3,
+                progress=lambda m: typer.echo(f"- {m}"),
+                sensor=sensor,
+            )
         except RuntimeError as exc:
             fail(str(exc), EXIT_FAILED)
         st = res.stats

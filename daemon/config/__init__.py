@@ -30,6 +30,7 @@ The package holds one module per group of sections; import the names from here:
 from wristscan.daemon.config.errors import ConfigError, format_validation_error
 from wristscan.daemon.config.hardware import (
     CellConfig,
+    GocatorSensorConfig,
     Lpf1SerialOptions,
     Lpf1SerialSensorConfig,
     Lpf1TcpOptions,
@@ -75,6 +76,7 @@ __all__ = [
     "CellConfig",
     "Config",
     "ConfigError",
+    "GocatorSensorConfig",
     "Lpf1SerialOptions",
     "Lpf1SerialSensorConfig",
     "Lpf1TcpOptions",

@@ -9,9 +9,18 @@ from __future__ import annotations
 
 import difflib
 import math
+import os
 from typing import Annotated, Any, Literal, Union
 
-from pydantic import BaseModel, Discriminator, Field, Tag, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    Discriminator,
+    Field,
+    Tag,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from wristscan.daemon.config.values import (
     CELL_NAME,
@@ -97,6 +106,10 @@ class RobotConfig(StrictModel):
     workspace_max_m: Vec3 = (0.9, 0.9, 1.2)
     use_factory_kinematics: Bool = True
     """Read the arm's own DH calibration (primary interface) instead of the nominal table."""
+    kinematics_file: Annotated[Str, Field(min_length=1)] | None = None
+    """The arm's kinematics identified with the probe (``wristscan calibrate kinematics``, JSON);
+    when set, flange poses are computed with it (before the factory calibration). Relative paths
+    are resolved against the config file's folder."""
     options: dict[str, Any] = Field(default_factory=dict)
     """Extra settings for a plug-in driver (not checked here)."""
 
@@ -104,6 +117,14 @@ class RobotConfig(StrictModel):
     @classmethod
     def _driver(cls, v: str) -> str:
         return _check_driver("robots", v)
+
+    @field_validator("kinematics_file")
+    @classmethod
+    def _kinematics_file(cls, v: str | None, info: ValidationInfo) -> str | None:
+        base = (info.context or {}).get("base_dir")
+        if v is None or base is None or os.path.isabs(os.path.expanduser(v)):
+            return None if v is None else os.path.expanduser(v)
+        return os.path.normpath(os.path.join(base, os.path.expanduser(v)))
 
     @model_validator(mode="after")
     def _workspace(self) -> RobotConfig:
@@ -189,6 +210,15 @@ class ScipOptions(StrictModel):
         return self
 
 
+class GocatorOptions(StrictModel):
+    host: Host
+    """The sensor's address (docs/gocator.md)."""
+    control_port: Port = 3190
+    data_port: Port = 3196
+    health_port: Port = 3194
+    connect_timeout_s: Annotated[Float, Field(gt=0, le=60)] = 2.0
+
+
 class _SensorCommon(StrictModel):
     sensor_id: Annotated[Int, Field(ge=0, le=2**32 - 1)] | None = None
     """Only profiles with this id are accepted (None: any)."""
@@ -236,6 +266,11 @@ class ScipSensorConfig(_SensorCommon):
     """SCIP timestamps are 24-bit millisecond counters."""
 
 
+class GocatorSensorConfig(_SensorCommon):
+    driver: Literal["gocator"]
+    options: GocatorOptions
+
+
 class PluginSensorConfig(_SensorCommon):
     """A sensor driver from a ``wristscan.sensors`` entry point; its options are its own."""
 
@@ -256,6 +291,7 @@ _SENSOR_VARIANTS: dict[str, type[_SensorCommon]] = {
     "lpf1-serial": Lpf1SerialSensorConfig,
     "rf627-udp": Rf627SensorConfig,
     "scip": ScipSensorConfig,
+    "gocator": GocatorSensorConfig,
 }
 _PLUGIN_TAG = "<plugin>"
 
@@ -272,6 +308,7 @@ SensorConfig = Annotated[
         Annotated[Lpf1SerialSensorConfig, Tag("<lpf1-serial>")],
         Annotated[Rf627SensorConfig, Tag("<rf627-udp>")],
         Annotated[ScipSensorConfig, Tag("<scip>")],
+        Annotated[GocatorSensorConfig, Tag("<gocator>")],
         Annotated[PluginSensorConfig, Tag(_PLUGIN_TAG)],
     ],
     Discriminator(_sensor_tag),

@@ -123,6 +123,15 @@ class Config(StrictModel):
             raise cross_field(
                 "sensor.options.url", 'the simulated "scip-serial" scanner needs a serial device'
             )
+        if kind == "gocator":
+            o = self.sensor.options
+            base = int(getattr(o, "control_port", 3190))
+            for name, step in (("data_port", 6), ("health_port", 4)):
+                if int(getattr(o, name, base + step)) != base + step:
+                    raise cross_field(
+                        f"sensor.options.{name}",
+                        f"the simulated Gocator serves it at control_port + {step} ({base + step})",
+                    )
         return self
 
     def summary(self) -> list[str]:

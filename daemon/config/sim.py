@@ -124,7 +124,7 @@ class SimControllerConfig(StrictModel):
 
 
 SimSensorKind = Literal[
-    "lpf1-udp", "lpf1-tcp", "lpf1-serial", "rf627-udp", "scip-tcp", "scip-serial"
+    "lpf1-udp", "lpf1-tcp", "lpf1-serial", "rf627-udp", "scip-tcp", "scip-serial", "gocator"
 ]
 
 SIM_SCIP_ARES = 1440
@@ -136,6 +136,7 @@ SIM_KINDS_FOR_DRIVER: dict[str, tuple[str, ...]] = {
     "lpf1-serial": ("lpf1-serial",),
     "rf627-udp": ("rf627-udp",),
     "scip": ("scip-tcp", "scip-serial"),
+    "gocator": ("gocator",),
 }
 """The simulated sensors each built-in ``[sensor] driver`` reads (plug-in drivers: not known)."""
 

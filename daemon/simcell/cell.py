@@ -35,6 +35,8 @@ def _sensor_endpoint(cfg: Config) -> dict[str, Any]:
         return {"target": (host, int(opts.port))}  # type: ignore[union-attr]
     if driver == "lpf1-tcp":
         return {"host": opts.host, "port": int(opts.port)}  # type: ignore[union-attr]
+    if driver == "gocator":  # the simulated Gocator serves control_port and the two after it
+        return {"host": opts.host, "port": int(opts.control_port)}  # type: ignore[union-attr]
     url = str(getattr(opts, "url", ""))
     if url.startswith("socket://"):
         host, _, port = url.removeprefix("socket://").partition(":")

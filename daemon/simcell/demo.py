@@ -34,7 +34,7 @@ from wristscan.daemon.simcell.cell import (
     write_truth_calibrations,
 )
 
-__all__ = ["DemoResult", "run_demo"]
+__all__ = ["SENSORS", "DemoResult", "demo_config", "run_demo"]
 
 log = logging.getLogger(__name__)
 
@@ -90,16 +90,15 @@ class _Collector:
         self._thread.join(5)
 
 
-def run_demo(
-    out: Path,
-    voxel_m: float = 0.0005,
-    progress: Callable[[str], None] = print,
-    workdir: Path | None = None,
-) -> DemoResult:
-    """Run the demo; returns what it measured. Raises ``RuntimeError`` when a part of the cell or
-    the daemon does not come up."""
-    tmp = tempfile.TemporaryDirectory(prefix="wristscan-demo-")
-    folder = Path(workdir or tmp.name)
+SENSORS = {"lpf1": "LPF1", "rf627": "Riftek RF627", "gocator": "LMI Gocator"}
+"""The sensor pairs the demo runs: ``[sensor] driver`` with its simulated counterpart."""
+
+
+def demo_config(sensor: str = "lpf1") -> tuple[dict[str, Any], dict[str, Any]]:
+    """The demo's configuration document (on loopback addresses of its own) for ``sensor`` (a
+    key of :data:`SENSORS`), and the overrides its simulated sensor needs."""
+    if sensor not in SENSORS:
+        raise ValueError(f"unknown demo sensor {sensor!r}; one of {', '.join(SENSORS)}")
     doc = free_sim_config(
         {
             "calibration": {"file": "sensor2flange.json", "table_file": "table.json"},
@@ -107,11 +106,37 @@ def run_demo(
             "sim.sensor": {"rate_hz": 500.0},
         }
     )
+    host = doc["robot"]["host"]
+    overrides: dict[str, Any] = {}
+    if sensor == "rf627":
+        doc["sensor"]["driver"] = "rf627-udp"
+        doc["sim"]["sensor"]["kind"] = "rf627-udp"
+    elif sensor == "gocator":
+        # Its three TCP channels at the standard ports on the cell's own loopback address.
+        doc["sensor"]["driver"] = "gocator"
+        doc["sensor"]["options"] = {"host": host}
+        doc["sim"]["sensor"]["kind"] = "gocator"
+        overrides["host"] = host
+    return doc, overrides
+
+
+def run_demo(
+    out: Path,
+    voxel_m: float = 0.0005,
+    progress: Callable[[str], None] = print,
+    workdir: Path | None = None,
+    sensor: str = "lpf1",
+) -> DemoResult:
+    """Run the demo with ``sensor`` (a key of :data:`SENSORS`); returns what it measured.
+    Raises ``RuntimeError`` when a part of the cell or the daemon does not come up."""
+    tmp = tempfile.TemporaryDirectory(prefix="wristscan-demo-")
+    folder = Path(workdir or tmp.name)
+    doc, overrides = demo_config(sensor)
     cfg_path = folder / "cell.toml"
     cfg_path.write_text(dump_toml(doc))
     cfg = load_config(cfg_path)
-    progress("starting the simulated cell (UR5e, LPF1 sensor, Modbus rotary table)")
-    cell = start_cell(cfg)
+    progress(f"starting the simulated cell (UR5e, {SENSORS[sensor]} sensor, Modbus rotary table)")
+    cell = start_cell(cfg, **overrides)
     daemon: subprocess.Popen[bytes] | None = None
     try:
         truth = cell.truth()
@@ -124,7 +149,10 @@ def run_demo(
             stderr=subprocess.STDOUT,
         )
         endpoint = cfg.zenoh.listen[0]
-        with CloudClient(cfg.zenoh.prefix, connect=[endpoint], capacity=4096) as client:
+        # The demo's own daemon is unsecured: the user's client credentials do not apply to it.
+        with CloudClient(
+            cfg.zenoh.prefix, connect=[endpoint], capacity=4096, user_config=False
+        ) as client:
             deadline = time.monotonic() + 60
             while not client.alive(timeout=0.5):
                 if daemon.poll() is not None or time.monotonic() > deadline:

@@ -25,7 +25,9 @@ __all__ = [
     "SensorSimConfig",
 ]
 
-SensorKind = Literal["lpf1-udp", "lpf1-tcp", "lpf1-serial", "rf627-udp", "scip-tcp", "scip-serial"]
+SensorKind = Literal[
+    "lpf1-udp", "lpf1-tcp", "lpf1-serial", "rf627-udp", "scip-tcp", "scip-serial", "gocator"
+]
 KINDS: tuple[str, ...] = (
     "lpf1-udp",
     "lpf1-tcp",
@@ -33,6 +35,7 @@ KINDS: tuple[str, ...] = (
     "rf627-udp",
     "scip-tcp",
     "scip-serial",
+    "gocator",
 )
 
 DEFAULT_SENSOR2FLANGE_POSE = (0.060, 0.010, 0.200, 0.020, -0.015, 0.010)
@@ -98,7 +101,8 @@ class SensorSimConfig:
     intensity: bool = False
     host: str = "127.0.0.1"
     port: int = 0
-    """TCP listening port (0: any free port)."""
+    """TCP listening port (0: any free port); Gocator: the control channel's, the data channel
+    on ``port + 6`` and the health channel on ``port + 4`` (0: three free ports)."""
     target: tuple[str, int] | None = None
     """UDP destination; None: ``(host, 50001)`` for RF627, ``(host, 50002)`` for LPF1."""
     max_datagram: int = lpf1.DEFAULT_MAX_MESSAGE
@@ -113,6 +117,8 @@ class SensorSimConfig:
     scip_range_min_m: float = 0.02
     scip_range_max_m: float = 30.0
     scip_model: str = "WRISTSCAN-SIM"
+    gocator_uniform: bool = True
+    """Gocator: send uniform profiles (the sensor's "uniform spacing"), else point clouds."""
     truth_wait_s: float = 0.05
     max_lag_s: float = 1.0
     """Exposures more than this late (an overloaded host) are skipped, leaving counter gaps."""
@@ -146,10 +152,12 @@ class SensorSimConfig:
     @classmethod
     def for_kind(cls, kind: SensorKind, **overrides: Any) -> SensorSimConfig:
         """Defaults that suit ``kind`` (RF627: 648 points; SCIP: a 270-degree 1081-step scanner
-        at 40 Hz), then ``overrides``."""
+        at 40 Hz; Gocator: the standard ports 3190/3196/3194), then ``overrides``."""
         base: dict[str, Any] = {"kind": kind}
         if kind == "rf627-udp":
             base.update(n_points=648)
+        elif kind == "gocator":
+            base.update(port=3190)
         elif kind.startswith("scip"):
             base.update(n_points=1081, scip_ares=1440, rate_hz=40.0, latency_s=0.001)
         base.update(overrides)
@@ -161,7 +169,7 @@ class SensorSimConfig:
 
     @property
     def transport(self) -> str:
-        return self.kind.split("-")[1]
+        return "tcp" if self.kind == "gocator" else self.kind.split("-")[1]
 
     def sensor2flange_matrix(self) -> NDArray[np.float64]:
         a = np.asarray(self.sensor2flange, dtype=np.float64)

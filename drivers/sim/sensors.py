@@ -11,6 +11,7 @@ Kinds and transports
 ``"rf627-udp"``           Riftek RF627 profile datagrams sent to ``config.target``
 ``"scip-tcp"``            Hokuyo SCIP 2.0 server (commands in, replies and scans out)
 ``"scip-serial"``         the same on a pseudo-terminal
+``"gocator"``             LMI Gocator Protocol: control, data and health TCP servers
 ========================  ===========================================================
 
 ``endpoint`` (after start): ``{"host", "port"}`` for TCP, ``{"target": (host, port)}`` for UDP
@@ -69,6 +70,7 @@ from wristscan.drivers.sim.sensor_config import (
     FaultConfig,
     SensorSimConfig,
 )
+from wristscan.drivers.sim.sensor_gocator import GocatorLink, GocatorProtocol
 from wristscan.drivers.sim.sensor_links import Link, PtyLink, TcpLink, UdpLink
 from wristscan.drivers.sim.sensor_protocols import (
     Batch,
@@ -243,6 +245,8 @@ class _Runtime:
             default_port = 50001 if cfg.kind == "rf627-udp" else 50002
             target_addr = cfg.target or (cfg.host, default_port)
             self.link: Link = UdpLink(self.stats, cfg.host, target_addr)
+        elif cfg.kind == "gocator":
+            self.link = GocatorLink(self.stats, cfg.host, cfg.port)
         elif cfg.transport == "tcp":
             self.link = TcpLink(self.stats, cfg.host, cfg.port)
         else:
@@ -252,6 +256,8 @@ class _Runtime:
             self.proto = Lpf1Protocol(cfg, self.link, self.clock)
         elif cfg.kind == "rf627-udp":
             self.proto = Rf627Protocol(cfg, self.link, self.clock)
+        elif cfg.kind == "gocator":
+            self.proto = GocatorProtocol(cfg, self.link, self.clock)
         else:
             self.proto = ScipProtocol(cfg, self.link, self.clock)
         self.sel = selectors.DefaultSelector()

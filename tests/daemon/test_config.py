@@ -15,6 +15,7 @@ from wristscan.daemon.cli.app import main
 from wristscan.daemon.config import (
     Config,
     ConfigError,
+    GocatorSensorConfig,
     Lpf1SerialSensorConfig,
     Lpf1UdpSensorConfig,
     Rf627SensorConfig,
@@ -200,6 +201,33 @@ def test_the_simulated_sensor_must_speak_the_driver() -> None:
         parse_config(edit(tcp, "sim.sensor", "kind", '"scip-serial"'))
     with pytest.raises(ConfigError, match=r'sim\.sensor\.kind: "rf627-udp" is not what'):
         parse_config(edit(SIM_TEXT, "sim.sensor", "kind", '"rf627-udp"'))
+
+
+def _gocator_text(*options: tuple[str, str]) -> str:
+    """The embedded default read by the Gocator driver, with the simulated Gocator."""
+    text = edit(SIM_TEXT, "sensor", "driver", '"gocator"')
+    text = edit(text, "sensor.options", "bind_host", None)
+    text = edit(text, "sensor.options", "port", None)
+    text = edit(text, "sensor.options", "host", '"127.0.0.1"')
+    for key, value in options:
+        text = edit(text, "sensor.options", key, value)
+    return edit(text, "sim.sensor", "kind", '"gocator"')
+
+
+def test_gocator_options_are_checked_and_match_the_simulators_ports() -> None:
+    cfg = parse_config(_gocator_text())
+    assert isinstance(cfg.sensor, GocatorSensorConfig)
+    assert (cfg.sensor.options.control_port, cfg.sensor.options.data_port) == (3190, 3196)
+    # the simulated Gocator serves the data and health channels at control_port + 6 and + 4
+    with pytest.raises(ConfigError, match=r"sensor\.options\.data_port: the simulated Gocator"):
+        parse_config(_gocator_text(("control_port", "4190")))
+    ok = _gocator_text(("control_port", "4190"), ("data_port", "4196"), ("health_port", "4194"))
+    cfg = parse_config(ok)
+    assert isinstance(cfg.sensor, GocatorSensorConfig) and cfg.sensor.options.health_port == 4194
+    with pytest.raises(ConfigError, match=r"sensor\.options\.hots"):
+        parse_config(_gocator_text(("hots", '"x"')))
+    with pytest.raises(ConfigError, match=r"sensor\.options\.control_port"):
+        parse_config(_gocator_text(("control_port", "70000")))
 
 
 def test_the_sim_scip_ares_is_the_simulators() -> None:
