@@ -49,12 +49,16 @@ from pathlib import Path
 import numpy as np
 
 from wristscan.calib import handeye, kinematic_errors, kinematics, se3, synthetic
+from wristscan.calib import kinematic_ident as ki
+from wristscan.calib import kinematic_ident_synthetic as ks
 from wristscan.calib.handeye_jackknife import with_jackknife
-from wristscan.calib.handeye_kinematic import KinematicPrior
+from wristscan.calib.handeye_kinematic import KinematicPrior, prior_sigma
 from wristscan.calib.handeye_uncertainty import local_errors, point_error
 
 sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parents[1] / "tests"))
 from _report import Figure, report
+from support import ur5e_working_q
 
 RUNS = 50
 SEED = 17
@@ -293,15 +297,166 @@ def _figures(
     return figs
 
 
-CASES = ("sweeps", "stop-and-go", "dh arm")
+# --------------------------------------------------------------------------------------------
+# Kinematic identification (issue 18): the arm's DH errors identified with the probe
+
+KIN_RUNS = 8
+KIN_PLACES = np.array([
+    [-0.30, -0.23, 0.17], [-0.55, 0.07, 0.17], [-0.07, -0.23, 0.17],
+    [-0.62, -0.19, 0.20], [-0.25, 0.17, 0.00], [-0.07, -0.50, 0.27],
+])  # fmt: skip
+"""Six ball places under the UR5e's working poses (tests/support ``UR5E_WORK_Q``)."""
+KIN_FOV = np.array([[-0.012, -0.012], [0.012, 0.012], [0.012, -0.012], [-0.012, 0.012]])
+KIN_REP_AXIS_M = 0.03e-3 / (np.sqrt(8 / np.pi) + 3 * np.sqrt(3 - 8 / np.pi))
+"""A UR5e's data-sheet repeatability (ISO 9283 RP 0.03 mm) as a per-axis sigma: 8.3 um."""
+KIN_TARGET_RATIO = 3.0
+KIN_TARGET_T_MM = 0.05
+KIN_TARGET_R_DEG = 0.02
 
 
-def run(runs: int = RUNS, seed: int = SEED, cases: tuple[str, ...] = CASES) -> list[Figure]:
+@dataclass
+class _KinRun:
+    s2f: tuple[float, float]
+    s2f_before: tuple[float, float]
+    point: dict[str, tuple[float, float]]
+    scatter: dict[str, float]
+    err: np.ndarray
+    sig: np.ndarray
+    free: np.ndarray
+    n_scans: int
+    seconds: float
+
+
+def _kin_run(seed: int) -> _KinRun:
+    """One arm (realistic DH deviations drawn from ``seed``, a partial factory calibration the
+    daemon pairs with, 0.03 mm repeatability), 17 orientations over each of six ball places, the
+    identification, and its figures against the truth on 300 held-out working poses."""
+    arm_m = kinematic_errors.RobotErrorModel("UR5e", seed=seed, factory="partial")
+    arm = ks.ArmSetup(arm_m.true_model, arm_m.reported_model, X_TRUE, KIN_PLACES,
+                      BALL_R_M, repeatability_axis_m=KIN_REP_AXIS_M,
+                      sensor_noise_m=SENSOR_SIGMA_M)  # fmt: skip
+    rng = np.random.default_rng(seed)
+    ori = ks.orbit_orientations(R0, X_TRUE[:3, :3], (0.0, 25.0, 50.0), 8)[7:]
+    scans = ks.make_scans(arm, [ori] * len(KIN_PLACES), KIN_FOV, rng)
+    X0 = X_TRUE @ se3.make(se3.rotvec_to_matrix(np.radians([0.3, -0.3, 0.3])), [5e-4, -5e-4, 5e-4])
+    t0 = time.perf_counter()
+    res = ki.identify(scans, arm.reported, X0, BALL_R_M, prior_sigma("partial"))
+    dt = time.perf_counter() - t0
+    nominal = kinematics.get_model("UR5e")
+    X_nom = ki.fit_sensor2flange(scans, nominal, X0, BALL_R_M)[0]
+    q = ur5e_working_q(300, seed=10_000 + seed)
+    truth = (arm.true, X_TRUE)
+    cases = {
+        "nominal table": (nominal, X_nom),
+        "factory calibration": (arm.reported, res.sensor2flange_before),
+        "identified": (res.model, res.sensor2flange),
+    }
+    n, r = arm.reported.arrays(), arm.true.arrays()
+    true_dev = np.concatenate([r[3] - n[3], r[1] - n[1], r[0] - n[0], r[2] - n[2]])
+    equiv = res.ident.equivalent @ true_dev
+    return _KinRun(
+        s2f=_s2f_errors(res.sensor2flange),
+        s2f_before=_s2f_errors(res.sensor2flange_before),
+        point={k: ks.point_error(v, truth, q, *WORKING_VOLUME) for k, v in cases.items()},
+        scatter={k: ks.centre_scatter(scans, *v, BALL_R_M) for k, v in cases.items()},
+        err=res.delta_vector - equiv,
+        sig=res.sigma.reshape(-1),
+        free=np.isin(np.arange(24), res.ident.free),
+        n_scans=len(scans),
+        seconds=dt,
+    )
+
+
+def _s2f_errors(X: np.ndarray) -> tuple[float, float]:
+    return (
+        float(np.linalg.norm(X[:3, 3] - X_TRUE[:3, 3])) * 1e3,
+        float(np.degrees(se3.rotation_angle(X[:3, :3].T @ X_TRUE[:3, :3]))),
+    )
+
+
+def _kin_figures(runs: int, seed: int) -> list[Figure]:
+    rs = [_kin_run(seed + 30_000 + i) for i in range(runs)]
+    tag = "kinematic ident"
+    t = max(r.s2f[0] for r in rs)
+    a = max(r.s2f[1] for r in rs)
+    figs = [
+        Figure(f"{tag}: sensor2flange translation error (max of {runs} arms)", t, "mm",
+               f"<= {KIN_TARGET_T_MM}", t <= KIN_TARGET_T_MM),
+        Figure(f"{tag}: sensor2flange rotation error (max)", a, "deg",
+               f"<= {KIN_TARGET_R_DEG}", a <= KIN_TARGET_R_DEG),
+        Figure(f"{tag}: without identification (factory model): translation (max)",
+               max(r.s2f_before[0] for r in rs), "mm", "", None),
+        Figure(f"{tag}: without identification (factory model): rotation (max)",
+               max(r.s2f_before[1] for r in rs), "deg", "", None),
+    ]  # fmt: skip
+    for k in rs[0].point:
+        raw = float(np.sqrt(np.mean([r.point[k][0] ** 2 for r in rs]))) * 1e3
+        al = float(np.sqrt(np.mean([r.point[k][1] ** 2 for r in rs]))) * 1e3
+        sc = float(np.sqrt(np.mean([r.scatter[k] ** 2 for r in rs]))) * 1e3
+        figs += [
+            Figure(f"{tag}: held-out point error, {k} (RMS, up to the base frame)", al, "mm",
+                   "", None),
+            Figure(f"{tag}: held-out point error, {k} (RMS, raw)", raw, "mm", "", None),
+            Figure(f"{tag}: ball-centre scatter across poses, {k} (RMS)", sc, "mm", "", None),
+        ]  # fmt: skip
+    for what, key in (("nominal table", "nominal table"), ("factory", "factory calibration")):
+        pr = [r.point[key][1] / r.point["identified"][1] for r in rs]
+        sr = [r.scatter[key] / r.scatter["identified"] for r in rs]
+        target = what == "nominal table"
+        figs += [
+            Figure(f"{tag}: point error {what} / identified (worst arm)", min(pr), "",
+                   f">= {KIN_TARGET_RATIO}" if target else "",
+                   min(pr) >= KIN_TARGET_RATIO if target else None),
+            Figure(f"{tag}: point error {what} / identified (median)", float(np.median(pr)), "",
+                   "", None),
+            Figure(f"{tag}: ball-centre scatter {what} / identified (worst arm)", min(sr), "",
+                   f">= {KIN_TARGET_RATIO}" if target else "",
+                   min(sr) >= KIN_TARGET_RATIO if target else None),
+        ]  # fmt: skip
+    figs += _kin_dh_figures(tag, rs)
+    figs += [
+        Figure(f"{tag}: sweeps per arm (6 places)", rs[0].n_scans, "", "", None),
+        Figure(f"{tag}: solver time per arm (mean)", float(np.mean([r.seconds for r in rs])),
+               "s", "", None),
+    ]  # fmt: skip
+    return figs
+
+
+def _kin_dh_figures(tag: str, rs: list[_KinRun]) -> list[Figure]:
+    """Per free DH parameter: the RMS error against the truth (fixed parameters' effects carried
+    by the free ones, ``Identifiability.equivalent``) beside the RMS reported sigma."""
+    err = np.array([r.err for r in rs])
+    sig = np.array([r.sig for r in rs])
+    free = np.all([r.free for r in rs], axis=0)
+    figs = []
+    for i in np.flatnonzero(free):
+        name = ki.PARAM_NAMES[i]
+        unit, k = ("mdeg", 1e3 * 180 / np.pi) if name[0] in "t" or name[:2] == "al" else ("um", 1e6)
+        e = float(np.sqrt(np.mean(err[:, i] ** 2))) * k
+        sg = float(np.sqrt(np.mean(sig[:, i] ** 2))) * k
+        figs.append(Figure(f"{tag}: {name} error vs truth (RMS) / reported sigma {sg:.3g} {unit}",
+                           e, unit, "", None))  # fmt: skip
+    cover = float(np.mean(np.abs(err[:, free]) <= 2.0 * sig[:, free]))
+    figs.append(Figure(f"{tag}: DH deltas within 2 sigma of the truth", cover, "", "", None))
+    fixed = [ki.PARAM_NAMES[i] for i in np.flatnonzero(~free)]
+    figs.append(Figure(f"{tag}: fixed (unobservable): {', '.join(fixed)}", len(fixed), "", "",
+                       None))  # fmt: skip
+    return figs
+
+
+CASES = ("sweeps", "stop-and-go", "dh arm", "kinematic ident")
+
+
+def run(
+    runs: int = RUNS, seed: int = SEED, cases: tuple[str, ...] = CASES, kin_runs: int = KIN_RUNS
+) -> list[Figure]:
     figs: list[Figure] = []
     if "sweeps" in cases:
         figs += _figures("sweeps", _collect("sweeps", runs, seed))
     if "stop-and-go" in cases:
         figs += _figures("stop-and-go", _collect("poses", runs, seed + 10_000))
+    if "kinematic ident" in cases:
+        figs += _kin_figures(kin_runs, seed)
     if "dh arm" not in cases:
         return figs
     # Errors against the physical flange include the arm's pose-independent part (a wrong last
@@ -318,6 +473,7 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=RUNS)
     ap.add_argument("--seed", type=int, default=SEED)
     ap.add_argument("--json", default=None)
+    ap.add_argument("--kin-runs", type=int, default=KIN_RUNS, help="arms of the kinematic case")
     ap.add_argument(
         "--case", action="append", choices=CASES, help="run only this case (repeatable)"
     )
@@ -326,7 +482,7 @@ def main() -> None:
         f"calibration with a realistic robot: systematic {SYS_T_M * 1e3:g} mm / "
         f"{np.degrees(SYS_R_RAD):g} deg, repeatability {REP_T_M * 1e3:g} mm per axis"
     )
-    sys.exit(report(title, run(a.runs, a.seed, tuple(a.case or CASES)), a.json))
+    sys.exit(report(title, run(a.runs, a.seed, tuple(a.case or CASES), a.kin_runs), a.json))
 
 
 if __name__ == "__main__":

@@ -3,28 +3,52 @@
 from __future__ import annotations
 
 import logging
+import threading
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
 from wristscan.calib import kinematics
 from wristscan.daemon.config import Config, PluginSensorConfig
+from wristscan.daemon.io.kinematics_file import read_kinematics
 from wristscan.daemon.sync.clockconfig import ClockConfig
 from wristscan.daemon.sync.pairing import PairerConfig
 from wristscan.drivers import registry
 from wristscan.drivers.base import (
+    Backoff,
     Device,
     DriverError,
     DriverInitError,
+    DriverNotAvailable,
     ProfileSensor,
     Robot,
     RotaryTable,
 )
 
-__all__ = ["Devices", "make_devices", "pairer_config", "robot_model"]
+__all__ = [
+    "Devices",
+    "DevicesUnavailable",
+    "WaitCallback",
+    "make_devices",
+    "pairer_config",
+    "robot_model",
+]
 
 log = logging.getLogger(__name__)
 
 T = TypeVar("T", bound=Device[Any])
+
+WaitCallback = Callable[[str, float, str], None]
+"""Called after each failed attempt while waiting: (device kind, seconds waited, error)."""
+
+
+class DevicesUnavailable(DriverError):
+    """A device could not be opened within the wait (the message names it and its last error)."""
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
 
 
 @dataclass
@@ -49,6 +73,78 @@ class Devices:
             for d in reversed(opened):
                 d.close()
             raise
+
+    def open_waiting(
+        self,
+        wait_s: float,
+        stop: threading.Event,
+        *,
+        retry_initial_s: float = 0.25,
+        retry_max_s: float = 2.0,
+        on_wait: WaitCallback | None = None,
+    ) -> bool:
+        """Open every device, retrying one that cannot be opened yet (refused, timed out, I/O
+        error) with exponential backoff for at most ``wait_s`` seconds in all (0: one attempt).
+
+        Devices already open stay open while a later one is waited for. Returns True when all
+        are open, False when ``stop`` was set meanwhile (every device closed again). Raises
+        :class:`DevicesUnavailable` naming the device and its last error when the wait is over,
+        and re-raises at once what retrying cannot fix (a missing driver dependency, a bug)."""
+        t0 = time.monotonic()
+        deadline = t0 + wait_s
+        try:
+            for d in self.all():
+                if not self._open_one(d, t0, deadline, stop, retry_initial_s, retry_max_s, on_wait):
+                    self.close()
+                    return False
+        except BaseException:
+            self.close()
+            raise
+        return True
+
+    @staticmethod
+    def _open_one(
+        d: Device[Any],
+        t0: float,
+        deadline: float,
+        stop: threading.Event,
+        retry_initial_s: float,
+        retry_max_s: float,
+        on_wait: WaitCallback | None,
+    ) -> bool:
+        backoff = Backoff(retry_initial_s, retry_max_s)
+        waited_from: float | None = None
+        last = ""
+        while not stop.is_set():
+            try:
+                d.open()
+            except DriverNotAvailable:
+                raise
+            except DriverError as exc:
+                error = _one_line(exc)
+            else:
+                if waited_from is not None:
+                    log.info("%s open after waiting %.1f s", d.kind, time.monotonic() - waited_from)
+                return True
+            now = time.monotonic()
+            if now >= deadline:
+                waited = f" for {now - t0:.0f} s" if deadline > t0 else ""
+                raise DevicesUnavailable(f"{d.kind} not available{waited}: {error}")
+            if waited_from is None:
+                waited_from = now
+                log.warning(
+                    "waiting for %s: %s (retrying for up to %.0f s more)",
+                    d.kind,
+                    error,
+                    deadline - now,
+                )
+            elif error != last:
+                log.info("still waiting for %s: %s", d.kind, error)
+            last = error
+            if on_wait is not None:
+                on_wait(d.kind, now - waited_from, error)
+            stop.wait(min(backoff.next_delay(), max(0.0, deadline - now)))
+        return False
 
     def close(self) -> None:
         for d in reversed(self.all()):
@@ -131,8 +227,13 @@ def make_devices(cfg: Config) -> Devices:
 
 
 def robot_model(cfg: Config, devices: Devices) -> str | kinematics.DHParams:
-    """The kinematic model to pair with: the robot's factory calibration when the configuration
-    asks for it and the driver read it at ``open()``, else the nominal model."""
+    """The kinematic model to pair with: the arm's kinematics identified with the probe when
+    ``[robot] kinematics_file`` names them (a file that cannot be used raises
+    :class:`~wristscan.daemon.io.kinematics_file.KinematicsFileError`, one line), else the
+    robot's factory calibration when the configuration asks for it and the driver read it at
+    ``open()``, else the nominal model."""
+    if cfg.robot.kinematics_file is not None:
+        return read_kinematics(cfg.robot.kinematics_file, cfg.robot.model).model
     if cfg.robot.use_factory_kinematics:
         model = devices.robot.kinematic_model()
         if model is not None:

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
+from wristscan.daemon.cli._calibrate_kinematics import kinematics
 from wristscan.daemon.cli._calibrate_table import ConfigOpt, latency, table
 from wristscan.daemon.cli._common import (
     EXIT_USAGE,
@@ -135,14 +136,14 @@ def sensor(
     out: _OutOpt = None,
     report: _ReportOpt = None,
     manual: _ManualOpt = False,
-    speed_mm_s: Annotated[float, typer.Option("--speed-mm-s", help="Sweep speed.")] = 20.0,
+    speed_mm_s: Annotated[float, typer.Option("--speed-mm-s", help="Sweep speed.")] = 50.0,
     nominal: _NominalOpt = None,
     ball_radius_mm: _BallRadiusOpt = None,
     fov_width_mm: _FovWidthOpt = None,
     depth_min_mm: _DepthMinOpt = None,
     depth_max_mm: _DepthMaxOpt = None,
     grid: Annotated[int, typer.Option("--grid", help="Field-of-view grid (n x n).")] = 4,
-    orientations: _OrientationsOpt = 10,
+    orientations: _OrientationsOpt = 6,
     tilt_deg: _TiltOpt = 52.0,
     lateral_places: _LateralPlacesOpt = 2,
     one_way: _OneWayOpt = False,
@@ -338,6 +339,7 @@ def _print_result(result: SensorCalibrationResult, out: Path, report: Path | Non
 # The procedures of _calibrate_table, after sensor: ``calibrate --help`` lists them in this order.
 calibrate_app.command("table")(table)
 calibrate_app.command("latency")(latency)
+calibrate_app.command("kinematics")(kinematics)
 
 
 # ------------------------------------------------------------------------------ calibrate import

@@ -63,6 +63,13 @@ def service_problems(cfg: Config, files: bool = True) -> list[str]:
             problems.append(problem)
     if files:  # this machine's: the listen hosts must be its own, the zenoh file readable here
         problems += [f"{cfg.source}: {line}" for line in cfg.zenoh.problems()]
+    if files and cfg.robot.kinematics_file is not None:
+        from wristscan.daemon.io.kinematics_file import KinematicsFileError, read_kinematics
+
+        try:
+            read_kinematics(cfg.robot.kinematics_file, cfg.robot.model)
+        except KinematicsFileError as exc:
+            problems.append(f"{cfg.source}: robot.kinematics_file: {exc}")
     if cfg.ros2.enabled:
         try:
             import wristscan.daemon.cloud.ros2pub  # noqa: F401

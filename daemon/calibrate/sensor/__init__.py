@@ -23,8 +23,9 @@ d. **solve** - the paper's two-step solution (:func:`~wristscan.calib.handeye.tw
    (:func:`~wristscan.calib.handeye.refine`, covariance including the robot's repeatability);
 e. **validate** - leave-one-out over the orientations (the spread of the estimates), a check scan
    at an orientation that was not used (sphere fit of its points mapped with the new calibration:
-   centre against the calibrated ball centre, radius against the known one), and the apparent
-   sensor time offset from sweeps in both directions;
+   centre against the calibrated ball centre, radius against the known one; in automatic mode it
+   is swept right after stage c, aimed with the estimate, so the robot does not wait for the
+   solution), and the apparent sensor time offset from sweeps in both directions;
 f. the calibration file is written (atomically; nothing is written when the procedure fails or
    is stopped, so the calibration in force stays) and a report.
 

@@ -98,6 +98,7 @@ class AutomaticCollection:
         self.s = recorder.s
         self.nominal = nominal
         self.estimate: FloatArray | None = None
+        self._ball: FloatArray | None = None
         self._reference = np.eye(4)
         self._reference_q: FloatArray | None = None
 
@@ -135,6 +136,7 @@ class AutomaticCollection:
         self._reference = F0
         self._reference_q = q_start
         self.estimate = Xe
+        self._ball = ball
         return [*sweeps, *tilt_sweeps], visited, F0
 
     # --- (a) find ----------------------------------------------------------------------------
@@ -394,11 +396,17 @@ class AutomaticCollection:
         return out, last
 
     # --- (e) check scan ----------------------------------------------------------------------
-    def check(self, joint: handeye.HandEyeResult) -> list[RecordedSweep]:
-        """(e) a sweep at an orientation the solution did not use."""
+    def check(self, joint: handeye.HandEyeResult | None) -> list[RecordedSweep]:
+        """(e) a sweep at an orientation the solution did not use, aimed with ``joint`` or (None)
+        with the estimate the last orientations were aimed with: then it is swept before the
+        solution is computed, and the robot does not wait for it."""
         s = self.s
-        X = joint.sensor2flange
-        ball = joint.ball_centre_base
+        if joint is not None:
+            X, ball = joint.sensor2flange, np.asarray(joint.ball_centre_base)
+        elif self.estimate is not None and self._ball is not None:
+            X, ball = self.estimate, self._ball
+        else:
+            return []
         F0 = self._reference
         kin = self.cell.planner(self._reference_q)
         inv = se3.invert(X)

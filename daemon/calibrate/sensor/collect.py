@@ -71,6 +71,28 @@ class RobotCell:
         self.acq = acq
         self.model = model
         self._tcp2flange: FloatArray | None = None
+        self.motion_s = 0.0
+        """Seconds spent in motion commands so far."""
+        self._first_motion: float | None = None
+        self._last_motion_end = 0.0
+
+    @property
+    def robot_time_s(self) -> float:
+        """Seconds from the start of the first motion to the end of the last one: the time the
+        procedure keeps the robot (0 before any motion)."""
+        if self._first_motion is None:
+            return 0.0
+        return self._last_motion_end - self._first_motion
+
+    def _timed(self, fn: Callable[..., T], *args: Any) -> T:
+        t0 = time.monotonic()
+        if self._first_motion is None:
+            self._first_motion = t0
+        try:
+            return self._call(fn, *args)
+        finally:
+            self._last_motion_end = time.monotonic()
+            self.motion_s += self._last_motion_end - t0
 
     @property
     def robot(self) -> Robot:
@@ -131,10 +153,10 @@ class RobotCell:
 
     def move_l(self, flange2base: FloatArray, speed: float, accel: float) -> None:
         pose = se3.matrix_to_pose(np.asarray(flange2base) @ self.tcp2flange())
-        self._call(self.robot.move_l, pose, speed, accel)
+        self._timed(self.robot.move_l, pose, speed, accel)
 
     def move_j(self, q: FloatArray, speed: float, accel: float) -> None:
-        self._call(self.robot.move_j, np.asarray(q, dtype=np.float64), speed, accel)
+        self._timed(self.robot.move_j, np.asarray(q, dtype=np.float64), speed, accel)
 
     def stop(self) -> None:
         """Best-effort stop of the robot (after an error or an interrupt): a stop that fails is

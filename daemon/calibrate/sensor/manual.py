@@ -184,7 +184,7 @@ class ManualCollection:
             j += 1
         return tilts, plans
 
-    def check(self, joint: handeye.HandEyeResult) -> list[RecordedSweep]:
+    def check(self, joint: handeye.HandEyeResult | None) -> list[RecordedSweep]:
         """The check scan at an orientation of the operator's choice ([] when skipped)."""
         del joint
         got = self._manual_sweep(

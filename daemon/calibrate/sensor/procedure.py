@@ -71,7 +71,7 @@ class _Collection(Protocol):
 
     def collect(self) -> tuple[list[RecordedSweep], list[OrientationPlan], FloatArray]: ...
 
-    def check(self, joint: handeye.HandEyeResult) -> list[RecordedSweep]: ...
+    def check(self, joint: handeye.HandEyeResult | None) -> list[RecordedSweep]: ...
 
 
 @dataclass(frozen=True)
@@ -140,8 +140,9 @@ class SensorCalibration:
         try:
             self.recorder.wait_for_data()
             sweeps, orientations, ref = self._collection.collect()
+            early = self._check_early()
             sol = self._solve(sweeps)
-            check_sweeps, check = self._check(sol.two_step, sol.joint)
+            check_sweeps, check = self._check(sol.two_step, sol.joint, early)
             loo = self._leave_one_out(sol.sweeps, sol.joint)
         except BaseException:
             if not self.manual:
@@ -173,6 +174,8 @@ class SensorCalibration:
             duration_s=time.monotonic() - t0,
             robot_sigma_m=self._robot_sigma[0],
             observed_robot_sigma_m=self._robot_sigma[1],
+            robot_time_s=self.cell.robot_time_s,
+            motion_time_s=self.cell.motion_s,
         )
 
     # --- (d) solve ---------------------------------------------------------------------------
@@ -273,17 +276,32 @@ class SensorCalibration:
         return robot_sigma, observed
 
     # --- (e) validate ------------------------------------------------------------------------
+    def _check_early(self) -> list[RecordedSweep] | None:
+        """Automatic mode: the check scan's sweeps right after the collection, aimed with its
+        estimate (the robot does not wait for the solution); None otherwise."""
+        if not self.s.check_scan or self.manual:
+            return None
+        self.recorder.wait_for_data(quiet=True)
+        return self._collection.check(None)
+
     def _check(
-        self, two: handeye.HandEyeResult, joint: handeye.HandEyeResult
+        self,
+        two: handeye.HandEyeResult,
+        joint: handeye.HandEyeResult,
+        early: list[RecordedSweep] | None = None,
     ) -> tuple[list[RecordedSweep], CheckScan | None]:
-        """The check scan (when asked for): its sweeps, re-timed, and their sphere fit."""
+        """The check scan (when asked for): its sweeps (``early``: already recorded), re-timed,
+        and their sphere fit."""
         s = self.s
         R = s.ball_radius_m
         if not s.check_scan:
             return [], None
-        if not self.manual:
-            self.recorder.wait_for_data(quiet=True)
-        check_sweeps = self._collection.check(joint)
+        if early is not None:
+            check_sweeps = early
+        else:
+            if not self.manual:
+                self.recorder.wait_for_data(quiet=True)
+            check_sweeps = self._collection.check(joint)
         if not check_sweeps:
             return check_sweeps, None
         band = max(5 * joint.rms, 0.2e-3)

@@ -119,7 +119,8 @@ def _result_section(rep: Report, result: SensorCalibrationResult) -> None:
         f"{len(result.sweeps)} sweeps ({sum(w.stage == 'fov' for w in result.sweeps)} at "
         f"field-of-view locations), {sum(w.n_profiles for w in result.sweeps)} profiles; "
         f"smallest angle between sensor Z axes of two orientations "
-        f"{result.min_z_angle_deg:.1f} deg; {result.duration_s:.0f} s."
+        f"{result.min_z_angle_deg:.1f} deg; {result.duration_s:.0f} s in all, the robot kept "
+        f"{result.robot_time_s:.0f} s ({result.motion_time_s:.0f} s moving)."
     )
 
 

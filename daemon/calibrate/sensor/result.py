@@ -77,6 +77,11 @@ class SensorCalibrationResult:
     observed_robot_sigma_m: float = 0.0
     """Per-axis scatter of the places' ball centres (m), see
     :func:`~.solve.observed_robot_sigma`."""
+    robot_time_s: float = 0.0
+    """Seconds from the start of the first motion to the end of the last (the check scan's
+    included): how long the procedure keeps the robot."""
+    motion_time_s: float = 0.0
+    """Seconds the robot spent moving (sweeps and travel)."""
 
     @property
     def sensor2flange(self) -> FloatArray:

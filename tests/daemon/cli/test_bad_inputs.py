@@ -127,6 +127,11 @@ CLI_CASES: list[tuple[list[str], str]] = [
     (["simulate", "tcp", "--alpha", "10:nan:5"], "--alpha"),
     (["sim", *C, "--duration", "nan"], "--duration"),
     (["sim", *C, "--duration", "-1"], "--duration"),
+    (["calibrate", "kinematics", *C, "--speed-mm-s", "nan"], "--speed-mm-s"),
+    (["calibrate", "kinematics", *C, "--grid", "1"], "--grid"),
+    (["calibrate", "kinematics", *C, "--orientations", "3"], "--orientations"),
+    (["calibrate", "kinematics", *C, "--tilt-deg", "inf"], "--tilt-deg"),
+    (["calibrate", "kinematics", *C, "--lateral-places", "3"], "--lateral-places"),
     (["record", "-o", "x.ply", "-d", "nan"], "--duration"),
     (["record", "-o", "x.ply", "-d", "-1"], "--duration"),
     (["record", "-o", "x.ply", "-n", "0"], "--points"),
@@ -271,6 +276,7 @@ CONFIG_CASES: list[tuple[list[tuple[str, str, str]], Setup, str]] = [
         "sim.truth.sensor2flange_pose",
     ),
     ([("cell", "name", '"bad name"')], _no_files, "cell.name"),
+    ([("robot", "kinematics_file", '"missing.json"')], _no_files, "robot.kinematics_file"),
 ]
 
 
