@@ -228,7 +228,7 @@ def running(
         client = CloudClient(cfg.zenoh.prefix, connect=[endpoint], subscribe=False)
         batches = Batches()
         sub = client.session.declare_subscriber(f"{cfg.zenoh.prefix}/cloud", batches)
-        port = int(cfg.sensor.options.port)
+        port = int(cfg.sensor.options.port)  # type: ignore[union-attr]  # the cell's UDP sensor
         run = CellRun(cell, daemon, client, batches, doc, cfg_path, log_path, port, notify, sub=sub)
         run.wait_flowing(60.0)
         yield run

@@ -26,6 +26,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -43,7 +44,7 @@ PERIOD_S = 0.010
 ACL_MESSAGES = ["put", "declare_subscriber", "liveliness_token", "liveliness_query"]
 
 
-def _write(path: Path, content: dict[str, object]) -> str:
+def _write(path: Path, content: Mapping[str, object]) -> str:
     path.write_text(json.dumps(content))
     path.chmod(0o600)
     return str(path)

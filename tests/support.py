@@ -356,3 +356,27 @@ def make_tls_files(folder: Path, host: str, client: bool = False) -> Path:
             "x509", "-req", "-in", csr, *signing, "-out", folder / f"{kind}.pem", "-extfile", ext
         )
     return folder
+
+
+# ---------------------------------------------------------------------------------------------
+# A short scan of the demo part
+
+
+def demo_part_one_pass_plan() -> Any:
+    """One pass over the demo part's top (a plan of ``generate_plan``, table at 0 deg, the
+    sensor tilted 20 deg, 20 mm/s: 0.3 ms of timing error moves the points 6 um along it): what
+    the end-to-end tests of another sensor or robot driver scan."""
+    from wristscan.daemon.scan.plan_generate import generate_plan
+
+    plan = generate_plan(
+        (0.02, -0.01, 0.03),
+        (0.06, 0.03, 0.09),
+        fov_width_m=0.05,
+        overlap=0.3,
+        standoff_m=0.1,
+        table_angles_deg=[0.0],
+        tilts_deg=[20.0],
+        depth_range_m=(0.05, 0.15),
+        speed_m_s=0.02,
+    )
+    return plan.model_copy(update={"passes": plan.passes[:1]})

@@ -15,14 +15,19 @@ from typing import Any
 
 import numpy as np
 import pytest
-from support import TRUE_POSES_ONLY, depth_errors, part_signed_distance, registration_to_truth
+from support import (
+    TRUE_POSES_ONLY,
+    demo_part_one_pass_plan,
+    depth_errors,
+    part_signed_distance,
+    registration_to_truth,
+)
 from typer.testing import CliRunner
 
 from wristscan.daemon.cli.app import app
 from wristscan.daemon.config import ConfigError, load_config, parse_config
 from wristscan.daemon.devices import make_devices
 from wristscan.daemon.scan.job import run_scan
-from wristscan.daemon.scan.plan_generate import generate_plan
 from wristscan.daemon.simcell.cell import dump_toml, free_sim_config, write_truth_calibrations
 from wristscan.daemon.simcell.demo import demo_config
 from wristscan.daemon.simcell.scenarios import table_ball_cell
@@ -150,18 +155,7 @@ def test_the_gocator_pair_runs_calibrate_latency_and_a_scan_pass(tmp_path: Path)
         doc["sensor"]["latency_s"] = found["latency_s"]
         path.write_text(dump_toml(doc))
         cfg = load_config(path)
-        plan = generate_plan(
-            (0.02, -0.01, 0.03),
-            (0.06, 0.03, 0.09),
-            fov_width_m=0.05,
-            overlap=0.3,
-            standoff_m=0.1,
-            table_angles_deg=[0.0],
-            tilts_deg=[20.0],
-            depth_range_m=(0.05, 0.15),
-            speed_m_s=0.02,  # 0.3 ms of timing error: 6 um along the pass
-        )
-        plan = plan.model_copy(update={"passes": plan.passes[:1]})
+        plan = demo_part_one_pass_plan()
         truth = cell.truth()
         t2 = time.monotonic()
         result = run_scan(cfg, plan, confirmed=True, out_dir=tmp_path / "scan")
