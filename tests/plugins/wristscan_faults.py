@@ -25,7 +25,7 @@ The faults and their seams (see docs/mutations.md):
 * ``s2f-shift`` / ``s2f-rot``: the sensor calibration in force off by 0.1 mm along, or rotated by
   0.05 deg about, the sensor frame's diagonal (1, 1, 1)/sqrt(3) (no direction favoured). Seam:
   the calibration reads of the consumers, ``read_calibration`` as bound in
-  ``wristscan.daemon.procedure.in_force`` (every procedure) and ``wristscan.daemon.service.runtime``
+  ``wristscan.daemon.procedure.in_force`` (every procedure) and ``wristscan.daemon.service.setup``
   (the daemon). A test that reads a file back with ``read_calibration`` itself reads it as written.
 * ``encoder``: the table calibration's ``encoder_offset_rad`` in force off by 0.05 deg (same seam).
 * ``nearest``: the robot state taken at the nearest sample instead of interpolated. Seam:
@@ -251,7 +251,7 @@ def _patch_sensor_refit(mod: Any, size: float) -> None:
 
 
 _IN_FORCE = "wristscan.daemon.procedure.in_force"
-_RUNTIME = "wristscan.daemon.service.runtime"
+_RUNTIME = "wristscan.daemon.service.setup"
 
 FAULTS: dict[str, Fault] = {
     f.name: f
