@@ -27,6 +27,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from wristscan.calib import kinematics, se3, synthetic
 from wristscan.calib.dh import DHParams
+from wristscan.calib.handeye_kinematic import Q_USUAL
 from wristscan.calib.handeye_model import Sweep
 from wristscan.calib.kinematic_ident import BallScan
 
@@ -40,9 +41,6 @@ __all__ = [
 ]
 
 FloatArray = NDArray[np.float64]
-
-Q_SEED = np.array([0.0, -1.9, 1.9, -1.57, -1.57, 0.0])
-"""A UR arm's usual configuration (elbow up, wrist down)."""
 
 
 def _pose_twist(F: FloatArray, T: FloatArray) -> FloatArray:
@@ -143,7 +141,7 @@ def _observed(arm: ArmSetup, s: Sweep, place: int, rng: np.random.Generator) -> 
     ones less the sweep's repeatability offset, plus encoder noise) and the flange poses the
     controller's model computes from them."""
     try:
-        q_true = path_joints(arm.true, s.flange2base, Q_SEED)
+        q_true = path_joints(arm.true, s.flange2base, Q_USUAL)
     except (kinematics.Unreachable, ValueError, np.linalg.LinAlgError):
         return None
     q = q_true
