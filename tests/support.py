@@ -3,7 +3,9 @@ truth, in one place (benchmarks put this folder on ``sys.path``; pytest does for
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -380,3 +382,42 @@ def demo_part_one_pass_plan() -> Any:
         speed_m_s=0.02,
     )
     return plan.model_copy(update={"passes": plan.passes[:1]})
+
+
+# ---------------------------------------------------------------------------------------------
+# The daemon's zenoh face publishing on loopback, for the client commands' tests
+
+
+@contextlib.contextmanager
+def loopback_publisher(
+    prefix: str, step: Callable[[Any, int], None], **face: Any
+) -> Iterator[tuple[str, Any]]:
+    """The daemon's own zenoh face (``DaemonZenoh(session, prefix, **face)``) listening on a
+    loopback address of this run's own, ``step(face, k)`` called every 10 ms (k = 0, 1, ...) in
+    a thread until the block ends; yields ``(endpoint, face)``. Everything is closed after."""
+    import threading
+
+    from wristscan.daemon.cloud.zenoh_io import DaemonZenoh, open_session
+
+    host = own_loopback_host()
+    endpoint = f"tcp/{host}:{free_tcp_port(host)}"
+    session = open_session(listen=[endpoint])
+    dz = DaemonZenoh(session, prefix, **face)
+    stop = threading.Event()
+
+    def publish() -> None:
+        k = 0
+        while not stop.is_set():
+            step(dz, k)
+            k += 1
+            stop.wait(0.01)
+
+    thread = threading.Thread(target=publish, name="test-publisher")
+    thread.start()
+    try:
+        yield endpoint, dz
+    finally:
+        stop.set()
+        thread.join()
+        dz.close()
+        session.close()

@@ -16,7 +16,6 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -24,11 +23,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from support import RefusingPort, free_tcp_port, own_loopback_host
+from support import RefusingPort, loopback_publisher, own_loopback_host
 from typer.testing import CliRunner
 
 from wristscan.daemon.cli.app import app
-from wristscan.daemon.cloud.zenoh_io import DaemonZenoh, open_session
+from wristscan.daemon.cloud.zenoh_io import DaemonZenoh
 from wristscan.daemon.io import ply as plyio
 
 PREFIX = "wristscan/rectest"
@@ -65,43 +64,27 @@ class Daemon:
         return ["--prefix", PREFIX, "--connect", self.endpoint]
 
 
+def _publish(dz: DaemonZenoh, k: int) -> None:
+    if dz.seq % SKIP_EVERY == SKIP_EVERY - 1:
+        dz.seq += 1  # a batch lost before reaching any subscriber
+    seq = dz.seq
+    dz.publish_cloud(
+        batch_xyz(seq),
+        t_first_ns=1_700_000_000_000_000_000 + seq,
+        t_last_ns=1_700_000_000_000_000_000 + seq + 1,
+        n_profiles=PROFILES,
+        frame_id="base",
+        intensity=batch_intensity(seq),
+        profile_index=np.arange(B, dtype=np.uint32) % PROFILES,
+    )
+    if k % 10 == 0:
+        dz.publish_status({"state": "running", "sensor": {"rate_hz": 1000.0}})
+
+
 @pytest.fixture
 def daemon() -> Iterator[Daemon]:
-    host = own_loopback_host()
-    endpoint = f"tcp/{host}:{free_tcp_port(host)}"
-    session = open_session(listen=[endpoint])
-    dz = DaemonZenoh(session, PREFIX, stats=lambda: STATS)
-    stop = threading.Event()
-
-    def publish() -> None:
-        k = 0
-        while not stop.is_set():
-            if dz.seq % SKIP_EVERY == SKIP_EVERY - 1:
-                dz.seq += 1  # a batch lost before reaching any subscriber
-            seq = dz.seq
-            dz.publish_cloud(
-                batch_xyz(seq),
-                t_first_ns=1_700_000_000_000_000_000 + seq,
-                t_last_ns=1_700_000_000_000_000_000 + seq + 1,
-                n_profiles=PROFILES,
-                frame_id="base",
-                intensity=batch_intensity(seq),
-                profile_index=np.arange(B, dtype=np.uint32) % PROFILES,
-            )
-            if k % 10 == 0:
-                dz.publish_status({"state": "running", "sensor": {"rate_hz": 1000.0}})
-            k += 1
-            stop.wait(0.01)
-
-    thread = threading.Thread(target=publish, name="test-publisher")
-    thread.start()
-    try:
+    with loopback_publisher(PREFIX, _publish, stats=lambda: STATS) as (endpoint, dz):
         yield Daemon(endpoint, dz)
-    finally:
-        stop.set()
-        thread.join()
-        dz.close()
-        session.close()
 
 
 def _cli(*args: str) -> list[str]:

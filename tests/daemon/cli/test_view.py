@@ -10,19 +10,18 @@ published calibration.
 from __future__ import annotations
 
 import builtins
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-from support import free_tcp_port, own_loopback_host
+from support import free_tcp_port, loopback_publisher, own_loopback_host
 from typer.testing import CliRunner
 
 from wristscan.calib import se3
 from wristscan.daemon.cli.app import app
-from wristscan.daemon.cloud.zenoh_io import DaemonZenoh, open_session
+from wristscan.daemon.cloud.zenoh_io import DaemonZenoh
 
 PREFIX = "wristscan/viewtest"
 B = 300
@@ -47,38 +46,26 @@ def batch_flange(seq: int) -> np.ndarray:
     return se3.make(se3.rot_z(0.001 * k), np.stack([0.3 + 0 * k, k * 1e-4, 0.4 + 0 * k], 1))
 
 
+def _publish(dz: DaemonZenoh, k: int) -> None:
+    seq = dz.seq
+    dz.publish_cloud(
+        batch_xyz(seq),
+        t_first_ns=1_700_000_000_000_000_000 + seq * 10_000_000,
+        t_last_ns=1_700_000_000_000_000_000 + seq * 10_000_000 + 9_000_000,
+        n_profiles=4,
+        frame_id="base",
+    )
+    f2b = batch_flange(seq)
+    t = 1_700_000_000_000_000_000 + seq * 10_000_000 + np.arange(4) * 3_000_000
+    dz.publish_pose(seq, "base", t, f2b, f2b @ SENSOR2FLANGE)
+
+
 @pytest.fixture
 def daemon() -> Iterator[str]:
-    host = own_loopback_host()
-    endpoint = f"tcp/{host}:{free_tcp_port(host)}"
-    session = open_session(listen=[endpoint])
-    dz = DaemonZenoh(session, PREFIX, calibration=lambda: CALIBRATION, stats=lambda: {})
-    stop = threading.Event()
-
-    def publish() -> None:
-        while not stop.is_set():
-            seq = dz.seq
-            dz.publish_cloud(
-                batch_xyz(seq),
-                t_first_ns=1_700_000_000_000_000_000 + seq * 10_000_000,
-                t_last_ns=1_700_000_000_000_000_000 + seq * 10_000_000 + 9_000_000,
-                n_profiles=4,
-                frame_id="base",
-            )
-            f2b = batch_flange(seq)
-            t = 1_700_000_000_000_000_000 + seq * 10_000_000 + np.arange(4) * 3_000_000
-            dz.publish_pose(seq, "base", t, f2b, f2b @ SENSOR2FLANGE)
-            stop.wait(0.01)
-
-    thread = threading.Thread(target=publish, name="test-publisher")
-    thread.start()
-    try:
+    with loopback_publisher(
+        PREFIX, _publish, calibration=lambda: CALIBRATION, stats=lambda: {}
+    ) as (endpoint, _):
         yield endpoint
-    finally:
-        stop.set()
-        thread.join()
-        dz.close()
-        session.close()
 
 
 def _entities(path: Path) -> dict[str, list[Any]]:

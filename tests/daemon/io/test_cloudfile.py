@@ -8,7 +8,6 @@ import importlib.util
 import os
 import subprocess
 import sys
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -18,12 +17,12 @@ import pye57
 import pytest
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
-from support import free_tcp_port, own_loopback_host
+from support import loopback_publisher
 from typer.testing import CliRunner
 
 from wristscan.calib import se3
 from wristscan.daemon.cli.app import app
-from wristscan.daemon.cloud.zenoh_io import DaemonZenoh, open_session
+from wristscan.daemon.cloud.zenoh_io import DaemonZenoh
 from wristscan.daemon.io import cloudfile
 from wristscan.daemon.io.cloudfile import CloudFormatError, cloud_format
 
@@ -92,40 +91,26 @@ def test_record_refuses_an_unknown_extension(
     assert os.listdir(tmp_path) == []
 
 
+def _publish(dz: DaemonZenoh, k: int) -> None:
+    seq = dz.seq
+    dz.publish_cloud(
+        batch_xyz(seq),
+        t_first_ns=T0 + seq * DT_NS,
+        t_last_ns=T0 + seq * DT_NS + SPAN_NS,
+        n_profiles=PROFILES,
+        frame_id="base",
+        intensity=batch_intensity(seq),
+        profile_index=np.arange(B, dtype=np.uint32) % PROFILES,
+    )
+    f2b = batch_flange(seq)
+    t_ns = T0 + seq * DT_NS + np.linspace(0, SPAN_NS, PROFILES).astype(np.int64)
+    dz.publish_pose(seq, "base", t_ns, f2b, f2b @ SENSOR2FLANGE)
+
+
 @pytest.fixture(scope="module")
 def endpoint() -> Iterator[str]:
-    host = own_loopback_host()
-    ep = f"tcp/{host}:{free_tcp_port(host)}"
-    session = open_session(listen=[ep])
-    dz = DaemonZenoh(session, PREFIX)
-    stop = threading.Event()
-
-    def publish() -> None:
-        while not stop.is_set():
-            seq = dz.seq
-            dz.publish_cloud(
-                batch_xyz(seq),
-                t_first_ns=T0 + seq * DT_NS,
-                t_last_ns=T0 + seq * DT_NS + SPAN_NS,
-                n_profiles=PROFILES,
-                frame_id="base",
-                intensity=batch_intensity(seq),
-                profile_index=np.arange(B, dtype=np.uint32) % PROFILES,
-            )
-            f2b = batch_flange(seq)
-            t_ns = T0 + seq * DT_NS + np.linspace(0, SPAN_NS, PROFILES).astype(np.int64)
-            dz.publish_pose(seq, "base", t_ns, f2b, f2b @ SENSOR2FLANGE)
-            stop.wait(0.01)
-
-    thread = threading.Thread(target=publish, name="test-publisher")
-    thread.start()
-    try:
+    with loopback_publisher(PREFIX, _publish) as (ep, _):
         yield ep
-    finally:
-        stop.set()
-        thread.join()
-        dz.close()
-        session.close()
 
 
 def _record(endpoint: str, out: str, cwd: Path, points: int, *more: str) -> None:
