@@ -26,10 +26,10 @@ from wristscan.daemon.cli._remote import (
     resolve_target,
     wait_alive,
 )
-from wristscan.daemon.cloud.poses import PoseSubscriber
 
 if TYPE_CHECKING:
     from wristscan.daemon.cloud.client import CloudClient
+    from wristscan.daemon.cloud.poses import PoseSubscriber
     from wristscan.daemon.view.live import LiveView
 
 RING_CAPACITY = 64
@@ -116,6 +116,7 @@ def view(
     check_number("--timeout", timeout, ge=0.1)
     target = resolve_target(config, prefix, connect, mode)
     rec = _open_recording(record)
+    from wristscan.daemon.cloud.poses import PoseSubscriber
     from wristscan.daemon.view.live import LiveView
 
     with stop_on_signals() as stop:
