@@ -25,7 +25,14 @@ from numpy.typing import ArrayLike, NDArray
 from wristscan.calib import se3, table
 from wristscan.calib.se3 import FloatArray
 
-__all__ = ["Frame", "align", "align_with_poses", "profile_points", "sensor_poses"]
+__all__ = [
+    "Frame",
+    "align",
+    "align_and_poses",
+    "align_with_poses",
+    "profile_points",
+    "sensor_poses",
+]
 
 log = logging.getLogger(__name__)
 
@@ -111,10 +118,38 @@ def align(
     in :func:`sensor_poses`. Raises ``ValueError`` on bad shapes, indices or transforms, and on
     non-finite coordinates among the kept points (mark those invalid with ``mask``).
     """
+    return align_and_poses(
+        y,
+        z,
+        profile_index,
+        flange2base,
+        sensor2flange,
+        base2table,
+        table_angle_rad,
+        encoder_offset_rad,
+        frame,
+        mask,
+    )[0]
+
+
+def align_and_poses(
+    y: ArrayLike,
+    z: ArrayLike,
+    profile_index: ArrayLike,
+    flange2base: ArrayLike,
+    sensor2flange: ArrayLike,
+    base2table: ArrayLike | None = None,
+    table_angle_rad: ArrayLike | None = None,
+    encoder_offset_rad: float = 0.0,
+    frame: Frame = "base",
+    mask: ArrayLike | None = None,
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`align`, also returning the sensor poses ``sensor2<frame>`` (P, 4, 4) the points
+    went through (the daemon publishes them beside the cloud), composed and checked once."""
     poses = sensor_poses(
         flange2base, sensor2flange, base2table, table_angle_rad, encoder_offset_rad, frame
     )
-    return _align_points(y, z, profile_index, poses, mask)
+    return _align_points(y, z, profile_index, poses, mask), poses
 
 
 def align_with_poses(

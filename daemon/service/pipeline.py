@@ -409,15 +409,18 @@ class Pipeline:
         frame = setup.frame
         s = self.settings
         with self._cpu["align"]:
-            poses = align.sensor_poses(
+            xyz, poses = align.align_and_poses(
+                batch.y,
+                batch.z,
+                batch.profile_index,
                 batch.flange2base,
                 setup.sensor2flange,
                 base2table=setup.base2table if frame != "base" else None,
                 table_angle_rad=batch.table_angle if frame == "part" else None,
                 encoder_offset_rad=setup.encoder_offset_rad,
                 frame=frame,  # type: ignore[arg-type]
+                mask=valid,
             )
-            xyz = align.align_with_poses(batch.y, batch.z, batch.profile_index, poses, valid)
             intensity = (
                 batch.intensity[valid]
                 if s.publish_intensity and batch.intensity is not None

@@ -107,6 +107,25 @@ def test_mask_drops_invalid_points(rng: np.random.Generator) -> None:
         align.align(y[perm], z[perm], idx[perm], poses_f, np.eye(4))
 
 
+def test_align_and_poses_returns_the_poses_the_points_went_through(
+    rng: np.random.Generator,
+) -> None:
+    p, n = 4, 6
+    f2b = random_poses(rng, p)
+    s2f = se3.make(se3.rotvec_to_matrix([0.1, -0.2, 0.05]), [0.01, 0.0, 0.12])
+    b2t = se3.make(se3.rotvec_to_matrix([0.02, 0.01, 0.3]), [0.7, 0.1, 0.02])
+    theta = rng.uniform(0.0, 6.0, size=p)
+    y, z = rng.normal(size=p * n), rng.normal(size=p * n)
+    idx = np.repeat(np.arange(p), n)
+    mask = rng.uniform(size=p * n) > 0.2
+    args = (y, z, idx, f2b, s2f, b2t, theta, 0.25, "part", mask)
+    xyz, poses = align.align_and_poses(*args)
+    want = align.sensor_poses(f2b, s2f, b2t, theta, 0.25, "part")
+    np.testing.assert_allclose(poses, want, atol=1e-15)
+    np.testing.assert_array_equal(xyz, align.align(*args))
+    np.testing.assert_allclose(xyz, loop_reference(y, z, idx, want)[mask], atol=1e-13)
+
+
 def test_part_frame_point_on_turning_part_is_constant(rng: np.random.Generator) -> None:
     # A tilted table axis, a fixed part point, and a sensor that sees it from a new robot pose
     # at each of P table angles.
