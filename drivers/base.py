@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Generic, Self, TypeVar
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from wristscan.drivers.records import Profile, RobotState, TableState
+from wristscan.drivers.records import Profile, ProfileBlock, RobotState, TableState
 
 if TYPE_CHECKING:
     from wristscan.calib.kinematics import DHParams
@@ -326,6 +326,29 @@ class ProfileSensor(Device[Profile]):
     def __init__(self, sensor_id: int = 0) -> None:
         super().__init__()
         self.sensor_id = sensor_id
+        self._held_error: DriverError | None = None
+
+    def read_blocks(self, max_profiles: int = 4096) -> list[ProfileBlock]:
+        """What the driver holds now, without waiting, as blocks of profiles of equal length
+        (at most ``max_profiles`` profiles): the hot path's read. This default collects
+        :meth:`read` records; drivers that can decode many profiles at once override it. A
+        driver error met after some profiles is raised by the next call (nothing is lost)."""
+        if self._held_error is not None:
+            exc, self._held_error = self._held_error, None
+            raise exc
+        records: list[Profile] = []
+        for _ in range(max_profiles):
+            try:
+                rec = self.read(timeout=0.0)
+            except DriverError as exc:
+                if not records:
+                    raise
+                self._held_error = exc
+                break
+            if rec is None:
+                break
+            records.append(rec)
+        return ProfileBlock.from_profiles(records)
         self._last_counter: int | None = None
 
     def _account_counter(self, counter: int, modulo: int = 1 << 64) -> bool:

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["AlignedBatch", "Profile", "RobotState", "TableState"]
+__all__ = ["AlignedBatch", "Profile", "ProfileBlock", "RobotState", "TableState"]
 
 
 @dataclass(slots=True)
@@ -45,6 +45,131 @@ class Profile:
     @property
     def n_points(self) -> int:
         return int(self.y.shape[0])
+
+
+@dataclass(slots=True)
+class ProfileBlock:
+    """P profiles of N points each, as arrays: what the hot path moves instead of P records.
+
+    Per profile ``(P,)`` int64: ``sensor_id``, ``frame_counter``, ``sensor_time_ns`` (device
+    clock, as :attr:`Profile.sensor_time_ns`), ``host_time_ns`` (receipt, monotonic) and
+    ``encoder`` with ``encoder_valid`` (None when no profile carries a count). Per point:
+    ``y`` (N,) when every profile shares one lateral grid (read-only, shared) or (P, N);
+    ``z`` (P, N) float64 metres, NaN where invalid; ``valid`` (P, N); ``intensity`` (P, N) or
+    None. Rows are in arrival order.
+    """
+
+    sensor_id: NDArray[np.int64]
+    frame_counter: NDArray[np.int64]
+    sensor_time_ns: NDArray[np.int64]
+    host_time_ns: NDArray[np.int64]
+    y: NDArray[np.float64]
+    z: NDArray[np.float64]
+    valid: NDArray[np.bool_]
+    intensity: NDArray[np.uint8] | None = None
+    encoder: NDArray[np.int64] | None = None
+    encoder_valid: NDArray[np.bool_] | None = None
+
+    def __post_init__(self) -> None:
+        p = self.sensor_time_ns.shape[0]
+        if self.z.ndim != 2 or self.z.shape[0] != p or self.valid.shape != self.z.shape:
+            raise ValueError(
+                f"profile block arrays disagree: {p} profiles, z {self.z.shape}, "
+                f"valid {self.valid.shape}"
+            )
+        if self.y.shape not in ((self.z.shape[1],), self.z.shape):
+            raise ValueError(f"profile block: y {self.y.shape} for z {self.z.shape}")
+        for name in ("sensor_id", "frame_counter", "host_time_ns"):
+            if getattr(self, name).shape != (p,):
+                raise ValueError(
+                    f"profile block: {name} {getattr(self, name).shape}, ({p},) expected"
+                )
+
+    @property
+    def n_profiles(self) -> int:
+        return int(self.z.shape[0])
+
+    @property
+    def n_points(self) -> int:
+        """Points per profile."""
+        return int(self.z.shape[1])
+
+    def y_rows(self) -> NDArray[np.float64]:
+        """``y`` as (P, N) (a broadcast read-only view for a shared grid)."""
+        return np.broadcast_to(self.y, self.z.shape) if self.y.ndim == 1 else self.y
+
+    def take(self, rows: NDArray[np.integer] | slice) -> ProfileBlock:
+        """The block of the profiles ``rows`` (copies for an index array, views for a slice)."""
+        y = self.y if self.y.ndim == 1 else self.y[rows]
+        enc = None if self.encoder is None else self.encoder[rows]
+        ev = None if self.encoder_valid is None else self.encoder_valid[rows]
+        return ProfileBlock(
+            self.sensor_id[rows],
+            self.frame_counter[rows],
+            self.sensor_time_ns[rows],
+            self.host_time_ns[rows],
+            y,
+            self.z[rows],
+            self.valid[rows],
+            None if self.intensity is None else self.intensity[rows],
+            enc,
+            ev,
+        )
+
+    def profile(self, k: int) -> Profile:
+        """Profile ``k`` as a record (for consumers that want records; not the hot path)."""
+        enc = None
+        if self.encoder is not None and self.encoder_valid is not None and self.encoder_valid[k]:
+            enc = int(self.encoder[k])
+        return Profile(
+            int(self.sensor_id[k]),
+            int(self.frame_counter[k]),
+            int(self.sensor_time_ns[k]),
+            int(self.host_time_ns[k]),
+            self.y if self.y.ndim == 1 else self.y[k],
+            self.z[k],
+            self.valid[k],
+            None if self.intensity is None else self.intensity[k],
+            enc,
+        )
+
+    @staticmethod
+    def from_profiles(profiles: list[Profile]) -> list[ProfileBlock]:
+        """Blocks of consecutive profiles of equal length, in order (records from drivers that
+        deliver one at a time). A lateral grid shared by the whole run stays shared."""
+        out: list[ProfileBlock] = []
+        a = 0
+        while a < len(profiles):
+            n = profiles[a].n_points
+            b = a + 1
+            while b < len(profiles) and profiles[b].n_points == n:
+                b += 1
+            out.append(_stack(profiles[a:b]))
+            a = b
+        return out
+
+
+def _stack(run: list[Profile]) -> ProfileBlock:
+    """One block of profiles of equal length."""
+    p = len(run)
+    y0 = run[0].y
+    shared = all(r.y is y0 for r in run)
+    has_i = all(r.intensity is not None for r in run)
+    has_e = any(r.encoder is not None for r in run)
+    return ProfileBlock(
+        sensor_id=np.fromiter((r.sensor_id for r in run), np.int64, p),
+        frame_counter=np.fromiter((r.frame_counter for r in run), np.int64, p),
+        sensor_time_ns=np.fromiter((r.sensor_time_ns for r in run), np.int64, p),
+        host_time_ns=np.fromiter((r.host_time_ns for r in run), np.int64, p),
+        y=y0 if shared else np.stack([r.y for r in run]),
+        z=np.stack([r.z for r in run]),
+        valid=np.stack([r.valid for r in run]),
+        intensity=np.stack([r.intensity for r in run]) if has_i else None,  # type: ignore[misc]
+        encoder=(np.fromiter((r.encoder or 0 for r in run), np.int64, p) if has_e else None),
+        encoder_valid=(
+            np.fromiter((r.encoder is not None for r in run), np.bool_, p) if has_e else None
+        ),
+    )
 
 
 @dataclass(slots=True)
