@@ -13,7 +13,7 @@ import sys
 import threading
 import time
 from array import array
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -176,10 +176,19 @@ def aim_at_table(cell: Any, cfg: Any) -> None:
 
 @contextlib.contextmanager
 def running(
-    tmp: Path, rate_hz: float, n_points: int, nice: int | None, congestion: str | None = None
+    tmp: Path,
+    rate_hz: float,
+    n_points: int,
+    nice: int | None,
+    congestion: str | None = None,
+    pipeline: dict[str, Any] | None = None,
+    sim_sensor: dict[str, Any] | None = None,
+    on_daemon: Callable[[int], None] | None = None,
 ) -> Iterator[CellRun]:
     """Start the cell, the daemon (until READY and batches flow) and the subscriber.
-    ``congestion``: the daemon's ``[zenoh] congestion_control`` (None: the default, drop)."""
+    ``congestion``: the daemon's ``[zenoh] congestion_control`` (None: the default, drop);
+    ``pipeline``, ``sim_sensor``: more ``[pipeline]`` and ``[sim.sensor]`` settings;
+    ``on_daemon``: called with the daemon's pid as soon as it is spawned."""
     from wristscan.daemon.cloud.client import CloudClient
     from wristscan.daemon.config import load_config
     from wristscan.daemon.simcell.cell import free_sim_config, start_cell, write_truth_calibrations
@@ -187,8 +196,13 @@ def running(
     doc = free_sim_config(
         {
             "calibration": {"file": "sensor2flange.json"},
-            "sim.sensor": {"rate_hz": float(rate_hz), "n_points": int(n_points)},
+            "sim.sensor": {
+                "rate_hz": float(rate_hz),
+                "n_points": int(n_points),
+                **(sim_sensor or {}),
+            },
             "sim.table": {"enabled": False},  # clouds in the base frame: no table needed
+            **({"pipeline": pipeline} if pipeline else {}),
         }
     )
     doc.pop("table", None)
@@ -217,6 +231,8 @@ def running(
                 stderr=subprocess.STDOUT,
                 start_new_session=True,  # its own scheduling entity, as under systemd
             )
+        if on_daemon is not None:
+            on_daemon(daemon.pid)
         if nice is not None:
             _set_session_nice(daemon.pid, nice)
         try:

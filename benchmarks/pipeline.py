@@ -30,14 +30,14 @@ pipeline drained, so every count below is exact, with nothing in flight at eithe
   (the robot receiver), per second and per published profile; the time its threads spent
   runnable but waiting for a CPU (``schedstat``: how starved the daemon was); RSS (``VmHWM``,
   ``VmRSS``);
-* raw zenoh: a bare publisher process putting payloads of the pipeline's mean batch size as fast
-  as it can (congestion control BLOCK: lossless) to a subscriber process, over the same kind of
-  session (peer, loopback TCP endpoint); median of ``raw_runs`` runs; the ratio of the pipeline's
-  delivered bytes/s to it.
+* the sustainable rate: one core divided by the daemon's CPU per profile (and the CPU per point).
+  (Until issue 21 a "pipeline / raw zenoh bytes" ratio was printed here; zenoh moves 5-7 GB/s on
+  loopback, 25x what is needed, so it measured the sensor's rate, not the daemon.)
 
-Then, independent of the daemon's threads: the thread CPU time per profile of each hot-path stage
-in-process (LPF1 parse + decode, pairing, alignment, WSC1 encoding) on synthetic data, and what
-the host allows: the delay from kernel arrival (``SO_TIMESTAMPNS``) to user-space stamp of a bare
+Then, independent of the daemon's threads: the worker's CPU time per profile of each hot-path
+step in-process (``benchmarks/hot_path.py``: receive + decode, pairing, alignment, publishing,
+target <= 15 us per 2048-point profile), and what the host allows: the delay from kernel
+arrival (``SO_TIMESTAMPNS``) to user-space stamp of a bare
 Python UDP receiver at each rate.
 
 As root, the daemon (and the subscriber) run at the ``Nice=`` of ``systemd/wristscan.service``,
@@ -50,7 +50,8 @@ Run: ``.venv/bin/python benchmarks/pipeline.py [--duration 20] [--rates 1000,500
 zero, the sensor's bytes go over TCP); exits 1 when a target is
 missed. Targets
 (every rate): no profile lost, no batch lost, published/sent >= 0.99, latency p99 (from the true
-exposures) <= 20 ms.
+exposures) <= 20 ms; at 10 kHz and above the daemon's CPU per profile <= 25 us; the in-process
+hot path <= 15 us per 2048-point profile.
 Figures and their discussion: docs/pipeline.md.
 """
 
@@ -61,7 +62,6 @@ import json
 import os
 import signal
 import socket
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -74,11 +74,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _report import Figure, report
+from hot_path import figures as hot_path_figures
+from hot_path import measure_hot_path
 
 HERE = Path(__file__).resolve()
 UNIT = HERE.parent.parent / "systemd" / "wristscan.service"
 MS = 1_000_000
 P99_TARGET_MS = 20.0
+CPU_TARGET_US = 25.0
+"""Issue 21: at 10 kHz x 2048 the daemon's CPU per profile (all its threads)."""
 PAUSE_S = 1.5
 """Sensor silence that opens the window (the pipeline drains meanwhile)."""
 SENT_RATIO_TARGET = 0.99
@@ -126,62 +130,6 @@ def _subscriber(endpoint: str, key: str, out: str) -> int:
     offset1 = time.time_ns() - time.monotonic_ns()
     arr = np.array(rows, dtype=np.int64).reshape(-1, 7)
     np.savez(out, rows=arr, offset0=offset0, offset1=offset1)
-    return 0
-
-
-def _raw_subscriber(endpoint: str, key: str, expect: int) -> int:
-    """Count samples; print ``first_ns last_ns count bytes`` once ``expect`` arrived."""
-    import threading
-
-    import zenoh
-
-    done = threading.Event()
-    state = {"n": 0, "bytes": 0, "t0": 0, "t1": 0}
-
-    def on_sample(sample: zenoh.Sample) -> None:
-        t = time.monotonic_ns()
-        size = len(sample.payload.to_bytes())
-        if state["n"] == 0:
-            state["t0"] = t
-        state["n"] += 1
-        state["bytes"] += size
-        state["t1"] = t
-        if state["n"] >= expect:
-            done.set()
-
-    with zenoh.open(_zenoh_config("peer", [endpoint], [])) as session:
-        sub = session.declare_subscriber(key, on_sample)
-        print("ready", flush=True)
-        done.wait(120.0)
-        sub.undeclare()
-    print(f"{state['t0']} {state['t1']} {state['n']} {state['bytes']}", flush=True)
-    return 0
-
-
-def _raw_publisher(endpoint: str, key: str, size: int, count: int) -> int:
-    """Put ``count`` WSC1 payloads of ``size`` bytes as fast as possible (BLOCK: lossless) once
-    a line arrives on stdin; print the elapsed put time."""
-    import zenoh
-
-    from wristscan.daemon.cloud import wsc1
-
-    n = max(0, (size - wsc1.HEADER.size) // 12)
-    xyz = np.random.default_rng(1).normal(size=(n, 3)).astype(np.float32)
-    payloads = [wsc1.encode(xyz, seq=i, t_first_ns=0, t_last_ns=0, n_profiles=1) for i in range(4)]
-    with zenoh.open(_zenoh_config("peer", [], [endpoint])) as session:
-        pub = session.declare_publisher(
-            key,
-            encoding=zenoh.Encoding(wsc1.ENCODING),
-            congestion_control=zenoh.CongestionControl.BLOCK,
-        )
-        print("ready", flush=True)
-        sys.stdin.readline()
-        t0 = time.monotonic_ns()
-        for i in range(count):
-            pub.put(payloads[i & 3])
-        print(time.monotonic_ns() - t0, flush=True)
-        sys.stdin.readline()  # stay up until the subscriber has everything
-        pub.undeclare()
     return 0
 
 
@@ -868,58 +816,6 @@ def measure_pipeline(
 # Raw zenoh
 
 
-def measure_raw_zenoh(payload_bytes: int, runs: int = 3, seconds: float = 2.0) -> dict[str, Any]:
-    """Bare zenoh put throughput for ``payload_bytes`` payloads between two processes (median
-    of ``runs``); each run puts about ``seconds`` worth (sized by a short probe run)."""
-    count = 200
-    results: list[tuple[float, float]] = []
-    for i in range(runs + 1):
-        key = f"bench/raw{os.getpid()}_{i}"
-        endpoint = f"tcp/127.0.0.1:{_free_port()}"
-        pub = _spawn("_rawpub", endpoint, key, str(payload_bytes), str(count))
-        sub = None
-        try:
-            if _expect_line(pub, "raw publisher") != "ready":
-                raise RuntimeError("raw publisher failed")
-            sub = _spawn("_rawsub", endpoint, key, str(count), stdin=False)
-            if _expect_line(sub, "raw subscriber") != "ready":
-                raise RuntimeError("raw subscriber failed")
-            time.sleep(0.5)  # let the subscription reach the publisher
-            assert pub.stdin is not None
-            pub.stdin.write("go\n")
-            pub.stdin.flush()
-            _expect_line(pub, "raw publisher")
-            t0, t1, n, nbytes = (int(v) for v in _expect_line(sub, "raw subscriber").split())
-            pub.stdin.write("end\n")
-            pub.stdin.flush()
-        finally:
-            for p in (sub, pub):
-                if p is not None:
-                    if p.stdin is not None:
-                        p.stdin.close()
-                    try:
-                        p.wait(30)
-                    except subprocess.TimeoutExpired:
-                        p.kill()
-                        p.wait()
-        span = max(t1 - t0, 1) * 1e-9
-        # The first sample starts the clock: n - 1 intervals.
-        msgs_s = (n - 1) / span
-        bytes_s = msgs_s * (nbytes / max(n, 1))
-        if i == 0:
-            count = int(min(max(msgs_s * seconds, 50), 20000))  # the probe sizes the runs
-            continue
-        if n < count:
-            raise RuntimeError(f"raw zenoh: {n} of {count} samples arrived with BLOCK")
-        results.append((msgs_s, bytes_s))
-    return {
-        "payload_bytes": payload_bytes,
-        "msgs_s": statistics.median(r[0] for r in results),
-        "bytes_s": statistics.median(r[1] for r in results),
-        "runs": [list(r) for r in results],
-    }
-
-
 # ----------------------------------------------------------------------------------------------
 # What the host allows, and what the hot path costs (both independent of the daemon's threads)
 
@@ -984,86 +880,6 @@ def measure_bare_receiver(
     }
 
 
-def measure_hot_path(
-    rate_hz: float = 5000.0, n_points: int = 2048, seconds: float = 2.0
-) -> dict[str, float]:
-    """Thread CPU time per profile of each stage of the daemon's hot path, in-process on
-    synthetic data (``seconds`` of a ``rate_hz`` stream, a 500 Hz robot standing still, 10 ms
-    ticks): LPF1 parse + decode, pairing (add + poll), alignment, WSC1 encoding. No sockets,
-    no zenoh (the raw zenoh figures cover the transport)."""
-    from wristscan.calib import align, se3
-    from wristscan.daemon.cloud import wsc1
-    from wristscan.daemon.sync.pairing import Pairer, PairerConfig
-    from wristscan.drivers import lpf1
-    from wristscan.drivers.records import RobotState
-
-    n_prof = int(rate_hz * seconds)
-    rng = np.random.default_rng(0)
-    enc = lpf1.ProfileEncoder(1, lpf1.PointFormat.I16, x_uniform=(-0.025, 0.05 / (n_points - 1)))
-    t0 = 10**12
-    t_exp = t0 + (np.arange(n_prof) * (1e9 / rate_hz)).astype(np.int64)
-    grams: list[bytes] = []
-    for a in range(0, n_prof, 500):
-        b = min(a + 500, n_prof)
-        z = 0.1 + rng.normal(0.0, 20e-6, size=(b - a, n_points))
-        msgs = enc.encode(np.arange(a, b), t_exp[a:b] + 2 * MS, z, np.ones(z.shape, bool))
-        grams += [m[0] for m in msgs]
-    arrive = t_exp + 2 * MS + 100_000
-    q = np.array([0.0, -1.2, 1.5, -1.9, -1.57, 0.0])
-    r_t = np.arange(t0 - 50 * MS, int(t_exp[-1]) + 50 * MS, 2 * MS)
-    states = [RobotState((t - t0) * 1e-9 + 7200.0, int(t) + 300_000, q, np.zeros(6)) for t in r_t]
-    s2f = se3.pose_to_matrix([0.06, 0.01, 0.2, 0.02, -0.015, 0.01])
-    acc = dict.fromkeys(("decode", "pairing", "align", "encode"), 0.0)
-    done: dict[str, int] = {}
-
-    def work() -> None:
-        pairer = Pairer(PairerConfig(sensor_latency_ns=2 * MS))
-        clock = time.thread_time
-        pi = ri = published = seq = 0
-        for now in range(t0, int(t_exp[-1]) + 30 * MS, 10 * MS):
-            c0 = clock()
-            profs = []
-            while pi < n_prof and arrive[pi] <= now:
-                profs.append(lpf1.decode_profile(lpf1.parse_message(grams[pi]), int(arrive[pi])))
-                pi += 1
-            c1 = clock()
-            while ri < len(states) and states[ri].host_time_ns <= now:
-                pairer.add_robot_state(states[ri])
-                ri += 1
-            for p in profs:
-                pairer.add_profile(p)
-            batches = pairer.poll()
-            c2 = clock()
-            acc["decode"] += c1 - c0
-            acc["pairing"] += c2 - c1
-            for bt in batches:
-                c3 = clock()
-                xyz = align.align(bt.y, bt.z, bt.profile_index, bt.flange2base, s2f, mask=bt.valid)
-                c4 = clock()
-                wsc1.encode(
-                    xyz,
-                    seq=seq,
-                    t_first_ns=int(bt.exposure_ns[0]),
-                    t_last_ns=int(bt.exposure_ns[-1]),
-                    n_profiles=bt.n_profiles,
-                )
-                acc["align"] += c4 - c3
-                acc["encode"] += clock() - c4
-                seq += 1
-                published += bt.n_profiles
-        done["published"] = published
-
-    th = threading.Thread(target=work, name="hot-path")  # a worker thread, as in the daemon
-    th.start()
-    th.join()
-    if done.get("published") != n_prof:
-        raise RuntimeError(f"hot path published {done.get('published')} of {n_prof} profiles")
-    out = {f"{k}_us": 1e6 * v / n_prof for k, v in acc.items()}
-    out["total_us"] = sum(out.values())
-    out["capacity_profiles_per_cpu_s"] = 1e6 / out["total_us"]
-    return out
-
-
 # ----------------------------------------------------------------------------------------------
 
 
@@ -1072,7 +888,6 @@ def run(
     duration_s: float = 20.0,
     n_points: int = 2048,
     warmup_s: float = 3.0,
-    raw_runs: int = 3,
     json_out: str | None = None,
     profile_out: str | None = None,
     workdir: str | None = None,
@@ -1090,7 +905,7 @@ def run(
     own_nice = cell_nice if cell_nice is not None else nice
     if cell_nice is not None and nice is None:
         nice = 0
-    args = (rates_hz, duration_s, n_points, warmup_s, raw_runs, json_out, profile_out, workdir)
+    args = (rates_hz, duration_s, n_points, warmup_s, json_out, profile_out, workdir)
     if own_nice is None:  # then nice is None too
         return _run(*args, nice, load)
     own = Path("/proc/self/autogroup")
@@ -1109,7 +924,6 @@ def _run(
     duration_s: float,
     n_points: int,
     warmup_s: float,
-    raw_runs: int,
     json_out: str | None,
     profile_out: str | None,
     workdir: str | None,
@@ -1125,12 +939,6 @@ def _run(
             wd = Path(workdir) / f"{int(rate)}"
             wd.mkdir(parents=True, exist_ok=True)
         r = measure_pipeline(rate, duration_s, n_points, warmup_s, wd, prof, nice, load)
-        size = int(r["mean_payload_bytes"])
-        if size <= 0:  # nothing was published: the nominal batch (10 ms ticks) instead
-            size = 64 + 12 * n_points * max(1, round(rate * 0.010))
-        raw = measure_raw_zenoh(size, runs=raw_runs)
-        r["raw_zenoh"] = raw
-        r["ratio_to_raw"] = r["subscriber_bytes_s"] / raw["bytes_s"]
         details.append(r)
         k = f"{rate / 1000:g} kHz"
         figures += [
@@ -1212,7 +1020,27 @@ def _run(
                 for q in ("p50", "p99")
             ),
             Figure(f"{k} daemon CPU", r["daemon_cpu_pct"], "% core", "-", None),
-            Figure(f"{k} daemon CPU per profile", r["cpu_us_per_profile"], "us", "-", None),
+            Figure(
+                f"{k} daemon CPU per profile",
+                r["cpu_us_per_profile"],
+                "us",
+                f"<= {CPU_TARGET_US:g}" if rate >= 10_000 else "-",
+                r["cpu_us_per_profile"] <= CPU_TARGET_US if rate >= 10_000 else None,
+            ),
+            Figure(
+                f"{k} daemon CPU per point",
+                1e3 * r["cpu_us_per_profile"] / n_points,
+                "ns",
+                "-",
+                None,
+            ),
+            Figure(
+                f"{k} sustainable rate (one core / CPU per profile)",
+                1e6 / max(r["cpu_us_per_profile"], 1e-3),
+                "1/s",
+                "-",
+                None,
+            ),
             Figure(f"{k} daemon waiting for a CPU", r["runqueue_wait_ms_s"], "ms/s", "-", None),
             Figure(f"{k} robot receiver CPU", r["children_cpu_pct"], "% core", "-", None),
             Figure(f"{k} simulated sensor CPU", r["sim_sensor_cpu_pct"], "% core", "-", None),
@@ -1222,9 +1050,6 @@ def _run(
             Figure(f"{k} other work on the machine, CPU", r["others_cpu_pct"], "% core", "-", None),
             Figure(f"{k} daemon RSS peak", r["rss_hwm_mb"], "MB", "-", None),
             Figure(f"{k} daemon RSS at end", r["rss_mb"], "MB", "-", None),
-            Figure(f"{k} raw zenoh msgs/s", raw["msgs_s"], "1/s", "-", None),
-            Figure(f"{k} raw zenoh bytes/s", raw["bytes_s"], "B/s", "-", None),
-            Figure(f"{k} pipeline / raw zenoh (bytes/s)", r["ratio_to_raw"], "", "-", None),
         ]
         print(
             f"# {k}: window {r['window_s']:.1f} s; sent {r['sent']}, received {r['received']} "
@@ -1252,20 +1077,7 @@ def _run(
         )
     hot = measure_hot_path(max(rates_hz), n_points)
     details.append({"hot_path": hot})
-    figures += [
-        Figure(f"hot path: {k.removesuffix('_us')} per profile", v, "us CPU", "-", None)
-        for k, v in hot.items()
-        if k.endswith("_us")
-    ]
-    figures.append(
-        Figure(
-            "hot path capacity (one core)",
-            hot["capacity_profiles_per_cpu_s"],
-            "1/s",
-            "-",
-            None,
-        )
-    )
+    figures += hot_path_figures(hot, n_points)
     for rate in rates_hz:
         bare = measure_bare_receiver(rate)
         details.append({"bare_receiver_hz": rate, **bare})
@@ -1302,10 +1114,6 @@ def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else argv
     if args and args[0] == "_sub":
         return _subscriber(*args[1:4])
-    if args and args[0] == "_rawsub":
-        return _raw_subscriber(args[1], args[2], int(args[3]))
-    if args and args[0] == "_rawpub":
-        return _raw_publisher(args[1], args[2], int(args[3]), int(args[4]))
     if args and args[0] == "_blast":
         return _blast(int(args[1]), float(args[2]), int(args[3]), float(args[4]))
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -1313,7 +1121,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--duration", type=float, default=20.0, help="measured window, s")
     ap.add_argument("--warmup", type=float, default=3.0, help="settling after first publish, s")
     ap.add_argument("--points", type=int, default=2048)
-    ap.add_argument("--raw-runs", type=int, default=3)
     ap.add_argument("--json", default=None, help="write the figures (and .details.json) here")
     ap.add_argument(
         "--profile", default=None, help="py-spy the daemon over each window (PREFIX.<rate>.txt)"
@@ -1367,7 +1174,6 @@ def main(argv: list[str] | None = None) -> int:
         ns.duration,
         ns.points,
         ns.warmup,
-        ns.raw_runs,
         ns.json,
         ns.profile,
         ns.workdir,

@@ -30,9 +30,10 @@ from wristscan.calib.sphere import fit_sphere
 from wristscan.daemon.sync.batch import PairedBatch
 from wristscan.daemon.sync.clockmap import ClockMapper
 from wristscan.daemon.sync.pairing import Pairer, PairerConfig
-from wristscan.drivers.records import Profile, RobotState
+from wristscan.drivers.records import Profile, ProfileBlock, RobotState
 
 sys.path.insert(0, str(Path(__file__).parent))
+from _clockfigs import figure_feed_blocks, figure_late_sender
 from _report import Figure, report
 
 FloatArray = NDArray[np.float64]
@@ -861,6 +862,141 @@ def figure_load_and_stalls(seed: int) -> list[Figure]:
     ]
 
 
+# ----------------------------------------------------------------------------- block pairing
+
+
+@dataclass
+class TickStreams:
+    """A fast sensor read in ticks: per tick, the profiles that arrived (a block's arrays)."""
+
+    dev: IntArray
+    arrive: IntArray
+    y: FloatArray
+    z: FloatArray
+    valid: NDArray[np.bool_]
+    states: list[RobotState]
+    state_arrive: IntArray
+    ticks: IntArray
+
+
+def make_tick_streams(
+    rate_hz: float, n_points: int, seconds: float, tick_ns: int, seed: int
+) -> TickStreams:
+    """Profiles at ``rate_hz`` (sensor clock +50 ppm, gamma delays) and a moving 500 Hz robot
+    (controller clock -30 ppm), both as the pipeline reads them every ``tick_ns``."""
+    rng = np.random.default_rng(seed)
+    n = int(rate_hz * seconds)
+    t_exp = T0 + np.rint(np.arange(n) * (1e9 / rate_hz)).astype(np.int64)
+    stamp = t_exp + SENSOR_LATENCY_NS
+    dev = np.rint((stamp - T0) / (1.0 + SENSOR_DRIFT)).astype(np.int64) + 777 * S
+    arrive = np.maximum.accumulate(stamp + DELAY_FLOOR_NS + _delays(rng, n, 100_000.0))
+    y = np.linspace(-0.025, 0.025, n_points)
+    y.flags.writeable = False  # a driver's shared lateral grid
+    z = 0.15 + rng.normal(0.0, 20e-6, (n, n_points))
+    c = np.arange(-100 * MS, int(seconds * S) + 200 * MS, ROBOT_PERIOD_NS)
+    h = T0 + np.rint(c * (1.0 + ROBOT_DRIFT)).astype(np.int64)
+    r_arrive = np.maximum.accumulate(h + DELAY_FLOOR_NS + _delays(rng, c.shape[0], 100_000.0))
+    q0 = np.array([0.3, -1.2, 1.4, -1.8, -1.57, 0.2])
+    w = np.array([0.2, -0.1, 0.15, 0.3, -0.25, 0.5])
+    states = [
+        RobotState((C0 + int(ci)) / 1e9, int(a), q0 + w * ci * 1e-9, np.zeros(6))
+        for ci, a in zip(c.tolist(), r_arrive.tolist(), strict=True)
+    ]
+    ticks = np.arange(T0 + tick_ns, int(arrive[-1]) + 3 * tick_ns, tick_ns)
+    return TickStreams(dev, arrive, y, z, np.ones(z.shape, bool), states, r_arrive, ticks)
+
+
+def _timed(f: Callable[..., object], acc: list[int]) -> Callable[..., object]:
+    def g(*a: object) -> object:
+        t = time.thread_time_ns()
+        out = f(*a)
+        acc[0] += time.thread_time_ns() - t
+        return out
+
+    return g
+
+
+def pair_ticks(st: TickStreams, blocks: bool, warm_ns: int = 500 * MS) -> dict[str, float]:
+    """Thread CPU per profile of pairing (add + poll, batches built) read tick by tick, after
+    ``warm_ns``: the profiles of each tick handed over as one block, or record by record. The
+    block's arrays are fresh each tick (just decoded) and records are built outside the timing;
+    the robot states are added outside it too (their own stream)."""
+    pairer = Pairer(pairer_config(SENSOR_LATENCY_NS))
+    interp, feed = [0], [0]
+    robot = pairer.robot
+    robot.interpolate = _timed(robot.interpolate, interp)  # type: ignore[method-assign]
+    clk = pairer.sensor_clock(1)
+    clk.feed_many = _timed(clk.feed_many, feed)  # type: ignore[method-assign]
+    clk.feed = _timed(clk.feed, feed)  # type: ignore[method-assign]
+    pi = np.searchsorted(st.arrive, st.ticks, side="right")
+    ri = np.searchsorted(st.state_arrive, st.ticks, side="right")
+    a = b = 0
+    cpu = counted = 0
+    n_interp = n_feed = 0
+    for tick, pe, re in zip(st.ticks.tolist(), pi.tolist(), ri.tolist(), strict=True):
+        for s in st.states[b:re]:
+            pairer.add_robot_state(s)
+        b = re
+        block = ProfileBlock(
+            np.ones(pe - a, np.int64),
+            np.arange(a, pe),
+            st.dev[a:pe].copy(),
+            st.arrive[a:pe].copy(),
+            st.y,
+            st.z[a:pe].copy(),
+            st.valid[a:pe].copy(),
+        )
+        recs = [] if blocks else [block.profile(k) for k in range(pe - a)]
+        interp[0] = feed[0] = 0
+        t = time.thread_time_ns()
+        if blocks and pe > a:
+            pairer.add_block(block)
+        for r in recs:
+            pairer.add_profile(r)
+        pairer.poll()
+        if tick > T0 + warm_ns:
+            cpu += time.thread_time_ns() - t
+            n_interp += interp[0]
+            n_feed += feed[0]
+            counted += pe - a
+        a = pe
+    pairer.poll(pairer.latest_host_ns + S)
+    if pairer.paired != st.arrive.shape[0]:
+        raise RuntimeError(f"paired {pairer.paired} of {st.arrive.shape[0]}: {pairer.dropped}")
+    return {
+        "us": cpu / counted / 1e3,
+        "robot_us": n_interp / counted / 1e3,
+        "feed_us": n_feed / counted / 1e3,
+    }
+
+
+def figure_block_pairing(
+    rate_hz: float = 5000.0, n_points: int = 2048, seconds: float = 2.0, runs: int = 5
+) -> list[Figure]:
+    """Pairing CPU per profile, 5 kHz x 2048 points in 10 ms ticks: blocks against records
+    (medians of ``runs`` alternating runs; the machine is shared)."""
+    st = make_tick_streams(rate_hz, n_points, seconds, 10 * MS, seed=11)
+    got: dict[bool, list[dict[str, float]]] = {True: [], False: []}
+    for _ in range(runs):
+        for blocks in (True, False):
+            got[blocks].append(pair_ticks(st, blocks))
+
+    def med(blocks: bool, key: str) -> float:
+        return float(np.median([g[key] for g in got[blocks]]))
+
+    blk, rec = med(True, "us"), med(False, "us")
+    label = f"blocks: {rate_hz / 1e3:g} kHz x {n_points}, 10 ms ticks"
+    return [
+        Figure(f"{label}, pairing CPU per profile (add_block + poll)", blk, "us", "<= 3", blk <= 3),
+        Figure(f"{label}, same record by record (add_profile)", rec, "us", "", None),
+        Figure(
+            f"{label}, of which robot interpolation + FK", med(True, "robot_us"), "us", "", None
+        ),
+        Figure(f"{label}, of which sensor clock feed_many", med(True, "feed_us"), "us", "", None),
+        Figure(f"{label}, records: sensor clock feed", med(False, "feed_us"), "us", "", None),
+    ]
+
+
 def run(seed: int = 1) -> list[Figure]:
     figs, latency_ns = figure_latency(seed)
     return (
@@ -869,6 +1005,9 @@ def run(seed: int = 1) -> list[Figure]:
         + figure_throughput(seed)
         + figure_reset_and_wrap(seed, latency_ns)
         + figure_load_and_stalls(seed)
+        + figure_block_pairing()
+        + figure_feed_blocks()
+        + figure_late_sender(seed=seed)
     )
 
 
@@ -876,7 +1015,20 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", default=None, help="also write the figures to this JSON file")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument(
+        "--blocks-only", action="store_true", help="only the block pairing figures (issue 21)"
+    )
+    ap.add_argument(
+        "--clock-only",
+        action="store_true",
+        help="only the clock feed and late-sender figures (issue 21)",
+    )
     args = ap.parse_args(argv)
+    if args.clock_only:
+        figs = figure_feed_blocks() + figure_late_sender(seed=args.seed)
+        return report("sync: clock feed, late sender (issue 21)", figs, json_out=args.json)
+    if args.blocks_only:
+        return report("sync: block pairing (issue 21)", figure_block_pairing(), json_out=args.json)
     return report("sync (issue 5)", run(args.seed), json_out=args.json)
 
 

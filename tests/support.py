@@ -421,3 +421,68 @@ def loopback_publisher(
         thread.join()
         dz.close()
         session.close()
+
+
+def late_sender_arrivals(
+    seconds: float,
+    rate_hz: float = 10_000.0,
+    model: str = "jitter",
+    seed: int = 0,
+    drift: float = 30e-6,
+    spikes_per_s: float = 0.5,
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """A sensor whose records leave 5-50 ms after their stamp (issue 21): device stamps, host
+    receive times and the true host instants of the stamps (ns), in arrival order.
+
+    The device clock runs ``drift`` fast and starts 1000 s ahead. The sender's lag, by model:
+    ``"wakeups"``: a sender waking every 0-45 ms (spikes: 100-300 ms) that sends the records at
+    least 5 ms old (what ``SensorSimConfig.send_late_s`` does); ``"jitter"``: independent per
+    record, uniform 5-50 ms; ``"catch-up"``: a sender falling behind (its lag grows by 0-30 % of
+    the record period per record, from 5 ms) until it catches up at a random 20-50 ms;
+    ``"wander"``: a lag wandering slowly over 5-50 ms; ``"overrun"``: a sender computing at 60 %
+    of the rate, whose lag grows from 0 to 1 s and stays there (the issue's 20 kHz simulator).
+    Then ``spikes_per_s`` spikes of a further 100-300 ms. One sender on one socket sends in
+    order: a late record holds back those behind it, which then
+    leave in a burst. The loopback adds 50 us + gamma jitter (mean 0.1 ms).
+    """
+    rng = np.random.default_rng(seed)
+    n = int(seconds * rate_hz)
+    period = 1e9 / rate_hz
+    t_stamp = 7_000_000_000 + np.rint(np.arange(n) * period).astype(np.int64)
+    dev = 1000 * 10**9 + np.rint((t_stamp - t_stamp[0]) * (1.0 + drift)).astype(np.int64)
+    ms = 1e6
+    if model == "wakeups":
+        # A sender that wakes every uniform(0, 45) ms (a spike: 100-300 ms later) and sends the
+        # records at least 5 ms old: each late by 5-50 ms, the oldest of a burst the most.
+        gaps = rng.uniform(0.0, 45 * ms, n)
+        spike = rng.random(n) < spikes_per_s * 0.0225
+        gaps[spike] += rng.uniform(100 * ms, 300 * ms, int(spike.sum()))
+        wakes = t_stamp[0] + np.cumsum(gaps)
+        sent = wakes[np.searchsorted(wakes, t_stamp + 5 * ms)].astype(np.int64)
+        host = sent + np.rint(50_000 + rng.gamma(2.0, 50_000.0, n)).astype(np.int64)
+        return dev, np.maximum.accumulate(host), t_stamp
+    if model == "jitter":
+        lag = rng.uniform(5 * ms, 50 * ms, n)
+    elif model == "catch-up":
+        grow = period * rng.uniform(0.0, 0.3, n)
+        lag = np.empty(n)
+        now, limit = 5 * ms, rng.uniform(20 * ms, 50 * ms)
+        for i in range(n):  # a short recursion (test data, not library code)
+            now += grow[i]
+            if now > limit:
+                now, limit = 5 * ms, rng.uniform(20 * ms, 50 * ms)
+            lag[i] = now
+    elif model == "wander":
+        walk = np.cumsum(rng.normal(0.0, 0.3 * ms * np.sqrt(1e4 / rate_hz), n))
+        lag = 5 * ms + np.abs((walk % (90 * ms)) - 45 * ms)
+    elif model == "overrun":
+        # A simulator computing at 60 % of the rate: its lag grows from 0 until exposures are
+        # skipped at 1 s (SensorSimConfig.max_lag_s), then stays there (saw-tooth of chunks).
+        lag = np.minimum(0.4 * (t_stamp - t_stamp[0]), 1e9) + rng.uniform(0, 3.2 * ms, n)
+    else:
+        raise ValueError(f"unknown late-sender model {model!r}")
+    spike = rng.random(n) < spikes_per_s / rate_hz
+    lag[spike] += rng.uniform(100 * ms, 300 * ms, int(spike.sum()))
+    sent = np.maximum.accumulate(t_stamp + np.rint(lag).astype(np.int64))
+    host = sent + np.rint(50_000 + rng.gamma(2.0, 50_000.0, n)).astype(np.int64)
+    return dev, np.maximum.accumulate(host), t_stamp

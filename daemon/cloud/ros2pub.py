@@ -36,6 +36,7 @@ from numpy.typing import NDArray
 from rosbags.typesys import Stores
 
 from wristscan.daemon.cloud import ros2msg
+from wristscan.daemon.cloud.wsc1 import Wsc1Frame
 
 if TYPE_CHECKING:  # the cloud room imports no configuration at run time
     from wristscan.daemon.config.ros2 import Ros2Config
@@ -222,7 +223,7 @@ class Ros2Publisher:
 
     def publish_cloud(
         self,
-        xyz: NDArray[np.floating],
+        xyz: NDArray[np.floating] | Wsc1Frame,
         t_first_ns: int,
         t_last_ns: int,
         n_profiles: int,
@@ -230,12 +231,16 @@ class Ros2Publisher:
         intensity: NDArray[np.integer] | None = None,
         profile_index: NDArray[np.integer] | None = None,
     ) -> int:
-        """Publish one batch as PointCloud2 (``DaemonZenoh.publish_cloud``'s signature; the
-        stamp is the batch's first exposure); returns the ROS sequence number used, or -1 when
-        no subscriber matches (nothing is serialised then: no cost while nobody listens)."""
+        """Publish one batch as PointCloud2 (``DaemonZenoh.publish_cloud``'s signature, ``xyz``
+        an array or a :class:`Wsc1Frame` whose points and intensities are taken; the stamp is
+        the batch's first exposure); returns the ROS sequence number used, or -1 when no
+        subscriber matches (nothing is serialised then: no cost while nobody listens)."""
         if not self.cloud.pub.matching_status.matching:
             self.unmatched += 1
             return -1
+        if isinstance(xyz, Wsc1Frame):
+            intensity = xyz.intensity if intensity is None else intensity
+            xyz = xyz.xyz
         payload = ros2msg.cloud_cdr(xyz, t_first_ns, self.cfg.frame_id(frame_id), intensity)
         with self._lock:
             seq = self.cloud.seq
@@ -245,7 +250,8 @@ class Ros2Publisher:
 
     def tee(self, publish: Callable[..., int]) -> Callable[..., int]:
         """``publish`` (WSC1) followed by this PointCloud2; a ROS failure is logged and counted,
-        never stops the WSC1 stream. Returns what ``publish`` returns."""
+        never stops the WSC1 stream. Returns what ``publish`` returns. The arguments go to both
+        as they are: with a :class:`Wsc1Frame` the PointCloud2 is built from ``frame.xyz``."""
 
         def both(*args: Any) -> int:
             seq = publish(*args)

@@ -99,7 +99,7 @@ class DaemonZenoh:
 
     def publish_cloud(
         self,
-        xyz: NDArray[np.floating],
+        xyz: NDArray[np.floating] | wsc1.Wsc1Frame,
         t_first_ns: int,
         t_last_ns: int,
         n_profiles: int,
@@ -107,18 +107,26 @@ class DaemonZenoh:
         intensity: NDArray[np.uint8] | None = None,
         profile_index: NDArray[np.integer] | None = None,
     ) -> int:
-        """Publish one batch; returns its sequence number (consecutive: a gap means loss)."""
-        payload = wsc1.encode(
-            xyz,
+        """Publish one batch; returns its sequence number (consecutive: a gap means loss).
+
+        ``xyz`` (N, 3) metres with the optional per-point blocks, or a :class:`wsc1.Wsc1Frame`
+        the points (and its blocks) were written into: its header is written and its buffer
+        put as it is (``intensity`` and ``profile_index`` must then be None: they are the
+        frame's own)."""
+        if isinstance(xyz, wsc1.Wsc1Frame):
+            if intensity is not None or profile_index is not None:
+                raise ValueError("with a Wsc1Frame, intensity and profile_index are its own")
+            frame = xyz
+        else:
+            frame = wsc1.frame_of(xyz, intensity, profile_index)
+        payload = frame.finish(
             seq=self.seq,
             t_first_ns=t_first_ns,
             t_last_ns=t_last_ns,
             n_profiles=n_profiles,
             frame_id=frame_id,
-            intensity=intensity,
-            profile_index=profile_index,
         )
-        self._cloud.put(payload)
+        self._cloud.put(payload)  # zenoh copies the bytearray once; no copy of ours
         self.seq += 1
         self.published += 1
         return self.seq - 1

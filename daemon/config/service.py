@@ -94,6 +94,12 @@ class PipelineConfig(StrictModel):
     publish_robot_state: Bool = False
     publish_intensity: Bool = False
     publish_profile_index: Bool = False
+    shed_overload: Bool = True
+    """When profiles arrive faster than the daemon can process them, shed whole profiles evenly
+    (counted as ``overload``) and keep publishing near capacity, instead of falling behind
+    (docs/pipeline.md, "Overload")."""
+    utilisation: Annotated[Float, Field(gt=0.1, le=1.0)] = 0.9
+    """The share of the worker's time admissions may fill under overload."""
 
 
 class ZenohConfig(StrictModel):

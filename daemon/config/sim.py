@@ -159,6 +159,11 @@ class SimSensorConfig(StrictModel):
     clock_offset_s: Float = 0.0
     clock_drift_ppm: Annotated[Float, Field(ge=-1000, le=1000)] = 0.0
     clock_jitter_s: Annotated[Float, Field(ge=0, le=0.1)] = 0.0
+    send_late_s: tuple[NonNegFloat, NonNegFloat] = (0.0, 0.0)
+    """A sender that cannot keep its timing: it wakes every 0..(hi - lo) s and sends what is at
+    least ``lo`` s overdue (``[0.005, 0.05]``: 5-50 ms late, in bursts); 0: on time."""
+    send_late_spike_prob: Probability = 0.0
+    """With ``send_late_s``: the share of the sender's wake-ups 100-300 ms later still."""
     encoder: Bool = False
     """The sensor reports the table's encoder count with every profile."""
     intensity: Bool = False

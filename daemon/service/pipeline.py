@@ -28,12 +28,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wristscan.calib import align
+from wristscan.daemon.cloud import wsc1
 from wristscan.daemon.service.instruments import STEPS, LatencyWindow, StepCpu
+from wristscan.daemon.service.overload import Shedder, spread_rows, take_rows
 from wristscan.daemon.service.readers import Reader, name_os_thread
 from wristscan.daemon.sync.batch import PairedBatch
 from wristscan.daemon.sync.pairing import Pairer
-from wristscan.drivers.base import Device, DriverError
-from wristscan.drivers.records import Profile, RobotState, TableState
+from wristscan.drivers.base import Device, DriverError, ProfileSensor
+from wristscan.drivers.records import Profile, ProfileBlock, RobotState, TableState
 
 PosePublisher = Callable[
     [int, str, NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]], None
@@ -81,6 +83,12 @@ class PipelineSettings:
     driver's records are ``stamped_on_receipt``, e.g. by the kernel; then reading late loses no
     timing, the socket buffer holds the tick's datagrams, and a thread woken per profile,
     competing for the GIL with the worker, is saved)."""
+    shed_overload: bool = True
+    """Shed whole profiles, evenly spread and counted (``overload``), when they arrive faster
+    than the worker can process them (``daemon/service/overload.py``), instead of falling
+    behind without bound."""
+    utilisation: float = 0.9
+    """The share of the worker's time admissions may fill under overload."""
     gil_switch_interval_s: float | None = 0.0005
     """Python's thread switch interval while the pipeline runs, for sensor drivers that stamp
     a record when their thread gets the GIL back after the receive call: with Python's default
@@ -95,7 +103,7 @@ class Pipeline:
 
     def __init__(
         self,
-        sensor: Device[Profile],
+        sensor: ProfileSensor,
         robot: Device[RobotState],
         pairer: Pairer,
         setup: AlignmentSetup,
@@ -121,6 +129,10 @@ class Pipeline:
         self._on_batch = on_batch
         s = self.settings
         self._profiles: deque[Profile] = deque()
+        self._blocks: list[ProfileBlock] = []
+        """Blocks read inline since the last tick's admission, and their profile count."""
+        self._blocks_n = 0
+        self.shedder = Shedder(utilisation=s.utilisation)
         self._robot_q: deque[RobotState] = deque()
         self._table_q: deque[TableState] = deque()
         self.dropped: Counter[str] = Counter()
@@ -157,6 +169,8 @@ class Pipeline:
         self.tick_ms_max = 0.0
         self._gc_t0 = 0
         self._tick_ns = 0
+        self._tick_read_ns = 0
+        self._tick_wait_ns = 0
 
     def _make_readers(self) -> list[Reader[Any]]:
         """A reader thread per device: the robot, the table if any, and the sensor unless it is
@@ -226,12 +240,19 @@ class Pipeline:
             p = self.pairer.stats()
             published = self.published_profiles
             points, batches = self.published_points, self.published_batches
-            queued = len(self._profiles)
+            queued = len(self._profiles) + self._blocks_n
+            overload = self.shedder.status()
             with self._lock:
                 dropped = dict(self.dropped)
         for reason, n in dict(p["dropped"]).items():  # type: ignore[call-overload]
             dropped[reason] = dropped.get(reason, 0) + int(n)
-        received = int(p["received"]) + queued + dropped.get("queue_full", 0)  # type: ignore[call-overload]
+        # Shed before the pairer (queue_full, overload): received by the pipeline all the same.
+        received = (
+            int(p["received"])  # type: ignore[call-overload]
+            + queued
+            + dropped.get("queue_full", 0)
+            + dropped.get("overload", 0)
+        )
         pending = int(p["pending"]) + queued  # type: ignore[call-overload]
         return {
             "received": received,
@@ -253,6 +274,7 @@ class Pipeline:
             "state_waited_s": round(self.state_waited_s, 4),
             "worker_cpu_s": {k: round(c.ns * 1e-9, 4) for k, c in self._cpu.items()},
             "tick_ms_max": round(self.tick_ms_max, 3),
+            "overload": overload,
         }
 
     def status(self) -> dict[str, Any]:
@@ -330,14 +352,18 @@ class Pipeline:
 
     # --- worker ---------------------------------------------------------------------------------
     def _read_sensor_inline(self) -> None:
-        """Everything the sensor driver holds now (inline mode), into the profile queue."""
+        """Everything the sensor driver holds now (inline mode), as blocks for the next tick."""
         if not self.inline_sensor:
             return
-        read, sink, maxsize = self.sensor.read, self._profiles, self.settings.profile_queue
+        limit = self.settings.profile_queue
+        n0 = self._blocks_n
+        t0 = time.monotonic_ns()
         with self._cpu["read"]:
-            for _ in range(1_000_000):  # bounded: a flood cannot keep the worker here forever
+            # Bounded: a flood cannot keep the worker here forever (the rest waits in the
+            # socket buffer for the next step).
+            while self._blocks_n - n0 < 4 * limit:
                 try:
-                    rec = read(timeout=0.0)
+                    blocks = self.sensor.read_blocks(limit)
                 except DriverError as exc:
                     # The driver reconnects by itself; the next step tries again. A UDP sensor
                     # can fail 100 times a second: the first of a run warns, the rest debug.
@@ -345,29 +371,52 @@ class Pipeline:
                     self._inline_failing += 1
                     level = logging.WARNING if self._inline_failing == 1 else logging.DEBUG
                     log.log(level, "%s: %s", self.sensor.kind, exc)
-                    return
-                if rec is None:
-                    return
+                    break
+                if not blocks:
+                    break
                 self._inline_failing = 0
-                if len(sink) < maxsize:
-                    sink.append(rec)
-                else:
-                    self._drop_profile()
+                n = sum(b.n_profiles for b in blocks)
+                self._blocks.extend(blocks)
+                self._blocks_n += n
+                if n < limit:
+                    break
+        self.shedder.note_read(self._blocks_n - n0, time.monotonic_ns() - t0)
+
+    def _admit(self) -> None:
+        """This tick's profiles into the pairer, shedding what the worker cannot process."""
+        blocks, self._blocks = self._blocks, []
+        n_in, self._blocks_n = self._blocks_n, 0
+        records = self._profiles
+        if records:
+            taken = [records.popleft() for _ in range(len(records))]
+            blocks += ProfileBlock.from_profiles(taken)
+            n_in += len(taken)
+        if not n_in:
+            self.shedder.admit(0, time.monotonic_ns())
+            return
+        keep = n_in
+        if self.settings.shed_overload:
+            keep = self.shedder.admit(n_in, time.monotonic_ns())
+        if keep < n_in:
+            with self._lock:
+                self.dropped["overload"] += n_in - keep
+            blocks = take_rows(blocks, spread_rows(n_in, keep))
+        for b in blocks:
+            self.pairer.add_block(b)
 
     def _drain(self, profiles_too: bool = True) -> None:
         pairer = self.pairer
-        # States first: the profiles drained after them find their robot samples in place.
+        # States first: the profiles admitted after them find their robot samples in place.
         # Only what is there now: later arrivals wait for the next tick.
         self._states_arrived.clear()
-        robot, table, profiles = self._robot_q, self._table_q, self._profiles
+        robot, table = self._robot_q, self._table_q
         with self._cpu["pair"]:
             for _ in range(len(robot)):
                 pairer.add_robot_state(robot.popleft())
             for _ in range(len(table)):
                 pairer.add_table_state(table.popleft())
             if profiles_too:
-                for _ in range(len(profiles)):
-                    pairer.add_profile(profiles.popleft())
+                self._admit()
 
     def _poll(self) -> list[PairedBatch]:
         with self._cpu["pair"]:
@@ -376,7 +425,9 @@ class Pipeline:
     def _pair(self, stopping: bool) -> list[PairedBatch]:
         """This tick's batches: pair what arrived, then wait up to ``state_wait_s`` for the
         states that received profiles still need (not while stopping)."""
+        r0 = time.monotonic_ns()
         self._read_sensor_inline()
+        self._tick_read_ns = time.monotonic_ns() - r0
         self._drain()
         batches = self._poll()
         t0 = time.monotonic()
@@ -394,7 +445,9 @@ class Pipeline:
                 batches.extend(self._poll())
         if unpolled:
             batches.extend(self._poll())  # what the states that came in time do cover
-        self.state_waited_s += time.monotonic() - t0
+        waited = time.monotonic() - t0
+        self.state_waited_s += waited
+        self._tick_wait_ns = int(waited * 1e9)
         return self.pairer.merge(batches) if len(batches) > 1 else batches
 
     def _emit(self, batch: PairedBatch) -> None:
@@ -405,32 +458,31 @@ class Pipeline:
             self.published_profiles += batch.n_profiles
             return
         setup = self._setup
-        valid = batch.valid
         frame = setup.frame
         s = self.settings
         with self._cpu["align"]:
-            xyz, poses = align.align_and_poses(
-                batch.y,
-                batch.z,
-                batch.profile_index,
+            poses = align.sensor_poses(
                 batch.flange2base,
                 setup.sensor2flange,
                 base2table=setup.base2table if frame != "base" else None,
                 table_angle_rad=batch.table_angle if frame == "part" else None,
                 encoder_offset_rad=setup.encoder_offset_rad,
                 frame=frame,  # type: ignore[arg-type]
-                mask=valid,
+                checked=False,  # kinematics and a calibration checked when loaded
             )
-            intensity = (
-                batch.intensity[valid]
-                if s.publish_intensity and batch.intensity is not None
-                else None
+            # Every point in float32 straight into the WSC1 payload, segment by segment (the
+            # profiles' rows as they arrived: nothing concatenated first).
+            groups = [(g.y, g.z, g.valid, g.intensity) for g in batch.segments()]
+            cloud = wsc1.aligned_frame_of(
+                groups,
+                poses,
+                intensity=s.publish_intensity and all(g[3] is not None for g in groups),
+                profile_index=s.publish_profile_index,
             )
-            pidx = batch.profile_index[valid] if s.publish_profile_index else None
         t_first = int(batch.exposure_ns.min()) + self._utc_offset_ns
         t_last = int(batch.exposure_ns.max()) + self._utc_offset_ns
         with self._cpu["publish"]:
-            seq = self._publish(xyz, t_first, t_last, batch.n_profiles, frame, intensity, pidx)
+            seq = self._publish(cloud, t_first, t_last, batch.n_profiles, frame, None, None)
             if self._publish_pose is not None:
                 t_ns = batch.exposure_ns.astype(np.int64) + self._utc_offset_ns
                 self._publish_pose(seq, frame, t_ns, batch.flange2base, poses)
@@ -440,7 +492,7 @@ class Pipeline:
             )
         self.published_batches += 1
         self.published_profiles += batch.n_profiles
-        self.published_points += int(xyz.shape[0])
+        self.published_points += cloud.n_points
 
     def _wait_for_tick(self, tick: float) -> bool:
         """Sleep until the monotonic time ``tick``, reading ahead meanwhile; True to stop."""
@@ -453,7 +505,6 @@ class Pipeline:
                 return True
             with self._tick_lock:
                 self._read_sensor_inline()
-                self._drain()
 
     def _note_tick(
         self, t0: int, t1: int, t2: int, cpu_ns: int, batches: list[PairedBatch]
@@ -498,6 +549,11 @@ class Pipeline:
                         self._emit(b)
                 self._last_progress_ns = t2 = time.monotonic_ns()
                 self._note_tick(t0, t1, t2, time.thread_time_ns() - cpu0, batches)
+                # What the tick's profiles cost beyond reading them: the admission rate.
+                self.shedder.note_kept(
+                    sum(b.n_profiles for b in batches),
+                    t2 - t0 - self._tick_read_ns - self._tick_wait_ns,
+                )
                 if self._publish_status is not None and time.monotonic() >= next_status:
                     next_status += self.settings.status_period_s
                     self._publish_status(self.status())

@@ -205,6 +205,8 @@ class Service:
                 status_period_s=z.status_period_s,
                 publish_intensity=pl.publish_intensity,
                 publish_profile_index=pl.publish_profile_index,
+                shed_overload=pl.shed_overload,
+                utilisation=pl.utilisation,
             ),
             publish_status=self._publish_status,
             publish_pose=face.publish_pose,

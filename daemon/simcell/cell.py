@@ -79,6 +79,8 @@ def cell_spec(cfg: Config, **sensor_overrides: Any) -> CellSpec:
         "clock_offset_ns": round(s.clock_offset_s * 1e9),
         "clock_drift_ppm": s.clock_drift_ppm,
         "clock_jitter_ns": s.clock_jitter_s * 1e9,
+        "send_late_s": tuple(s.send_late_s),
+        "send_late_spike_prob": s.send_late_spike_prob,
         "sensor2flange": tuple(sim.truth.sensor2flange_pose),
         # The sensor sees the scene from where the flange really is: the arm's true model.
         "robot_model": controller.true_model if c.kinematic_errors != "none" else c.model,

@@ -43,6 +43,12 @@ the fit sound meanwhile:
   ``typical_drift`` as its scale) by inverse-variance weights, so a short or noisy stretch
   counts for little; a locked epoch unlocks only beyond ``unlock_factor`` times the limit.
 
+A sender that cannot keep its timing (issue 21) raises the floor instead: its first records are
+the least late, so the line rests on them and never locks. Before the first lock the fit moves
+to the newest part of the window that locks with its floor reached at its newest end
+(:func:`~.envelope.newer_floor`, counted in ``status()["floor_moves"]``), and a floor that came
+down since the last fit discards the split history of the points it left behind.
+
 Discontinuities
 ---------------
 Only a causality violation or a device-time discontinuity changes the fit:
@@ -84,7 +90,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from wristscan.daemon.sync.clockconfig import ClockConfig
-from wristscan.daemon.sync.envelope import EnvelopeLine, fit_window
+from wristscan.daemon.sync.clockfeed import feed_block
+from wristscan.daemon.sync.envelope import EnvelopeLine, Fit, fit_window, newer_floor
 
 logger = logging.getLogger(__name__)
 
@@ -122,6 +129,7 @@ class ClockMapper:
         self.epoch = -1
         self.n_resets = 0
         self.n_reanchors = 0
+        self.n_floor_moves = 0  # fits moved to a newer part of the window before a lock
         self.n_fed = 0
         self._old: dict[int, EnvelopeLine] = {}
         # Drift kept from the previous epoch: (drift, its uncertainty, span (ns) it was fitted on).
@@ -142,6 +150,7 @@ class ClockMapper:
         self._ox = 0.0
         self._or = 0.0
         self._last_fit_x = -(1 << 62)
+        self._last_trial_x = -(1 << 62)  # newest device time of the last _newer_part trial
         self._ever_locked = False
         self._fit_span = 0.0  # device-time span (ns) the current slope rests on
         # Arrivals late by more than the tolerance since device time went back (a step back?).
@@ -261,14 +270,14 @@ class ClockMapper:
         return self.epoch
 
     def feed_many(self, device_ns: ArrayLike, host_ns: ArrayLike) -> IntArray:
-        """Feed arrays of arrivals in order; returns the epoch of each."""
-        xs = np.asarray(device_ns, dtype=np.int64)
-        ys = np.asarray(host_ns, dtype=np.int64)
-        return np.fromiter(
-            (self.feed(x, y) for x, y in zip(xs.tolist(), ys.tolist(), strict=True)),
-            dtype=np.int64,
-            count=xs.shape[0],
-        )
+        """Feed arrays of arrivals in order (a tick's records); returns the epoch of each. Same
+        result as :meth:`feed` per arrival, vectorised while nothing unusual happens
+        (:func:`~.clockfeed.feed_block`)."""
+        xs = np.asarray(device_ns, dtype=np.int64).reshape(-1)
+        ys = np.asarray(host_ns, dtype=np.int64).reshape(-1)
+        if xs.shape != ys.shape:
+            raise ValueError("feed_many: device_ns and host_ns differ in length")
+        return feed_block(self, xs, ys)
 
     def _straggler(self, x: int) -> bool:
         """Whether the arrival that went back (``_excess[0]``) was a reordered record: the next
@@ -391,11 +400,9 @@ class ClockMapper:
         R = np.append(self._br[self._b0 : self._b1], self._or)
         return X, R
 
-    def _refit(self) -> None:
+    def _fit(self, X: FloatArray, R: FloatArray, u_hist: deque[tuple[float, float]]) -> Fit:
+        """``(d, a, x_e, u0, u_slope, span the slope rests on)`` of the points ``(X, R)``."""
         cfg = self.config
-        self._last_fit_x = self._x_last
-        self._prune()
-        X, R = self._points()
         n = X.shape[0]
         span = float(X.max() - X.min())
         # With a drift from the previous epoch, refit it only once this epoch has as much data
@@ -404,29 +411,71 @@ class ClockMapper:
         if self._prior is not None:
             need = max(need, min(self._prior[2], 0.5 * cfg.window_ns))
         if span >= need and n >= 6:
-            d, a, x_e, u0, u_slope = fit_window(
-                X, R, span, cfg, self._line, self._prior, self._u_hist
-            )
-            self._fit_span = span
+            d, a, x_e, u0, u_slope = fit_window(X, R, span, cfg, self._line, self._prior, u_hist)
+            return d, a, x_e, u0, u_slope, span
+        d, u_prior, fit_span = (
+            self._prior if self._prior is not None else (0.0, cfg.typical_drift, 0.0)
+        )
+        G = R - d * X
+        i0 = int(np.argmin(G))
+        # Offset only: the estimate sharpens quickly with every point, so no smoothing. (A
+        # re-anchored fit starts from one point below a line that was good: no worse.)
+        if n >= 2:
+            u0 = abs(0.5 * float(G[0::2].min() - G[1::2].min()))
+        elif self._ever_locked and self._line is not None:
+            u0 = self._line.u0
         else:
-            d, u_prior, self._fit_span = (
-                self._prior if self._prior is not None else (0.0, cfg.typical_drift, 0.0)
-            )
-            G = R - d * X
-            i0 = int(np.argmin(G))
-            a = float(G[i0])
-            x_e = float(X[i0])
-            # Offset only: the estimate sharpens quickly with every point, so no smoothing. (A
-            # re-anchored fit starts from one point below a line that was good: no worse.)
-            if n >= 2:
-                u0 = abs(0.5 * float(G[0::2].min() - G[1::2].min()))
-            elif self._ever_locked and self._line is not None:
-                u0 = self._line.u0
-            else:
-                u0 = math.inf
-            u_slope = u_prior if math.isfinite(u0) else cfg.max_drift
-        line = EnvelopeLine(self._x_ref, self._y_ref, a, d, x_e, u0, u_slope, False)
-        u_last = line.uncertainty1(float(self._x_last - self._x_ref))
+            u0 = math.inf
+        u_slope = u_prior if math.isfinite(u0) else cfg.max_drift
+        return d, float(G[i0]), float(X[i0]), u0, u_slope, fit_span
+
+    def _newer_part(self, X: FloatArray, R: FloatArray) -> Fit | None:
+        """Before the first lock: the fit of the newest part of the window that locks with the
+        floor reached at its newest end (:func:`~.envelope.newer_floor`); the older buckets are
+        then dropped. None if there is none."""
+        hists: list[deque[tuple[float, float]]] = []
+
+        def fit_part(x: FloatArray, r: FloatArray) -> Fit:
+            hists.append(deque(maxlen=_U_HISTORY))  # a fresh split history for each part
+            return self._fit(x, r, hists[-1])
+
+        dx_last = float(self._x_last - self._x_ref)
+        got = newer_floor(X, R, dx_last, self.config, fit_part)
+        if got is None:
+            return None
+        fit, x_cut = got
+        hist = hists[-1]
+        keep = self._bx[self._b0 : self._b1] >= x_cut
+        k = int(np.count_nonzero(keep))
+        self._bx[self._b0 : self._b0 + k] = self._bx[self._b0 : self._b1][keep]
+        self._br[self._b0 : self._b0 + k] = self._br[self._b0 : self._b1][keep]
+        self._b1 = self._b0 + k
+        self._u_hist = hist
+        self.n_floor_moves += 1
+        logger.info(
+            "%s: delay floor rose: fit moved to the newest %.3f s",
+            self.name,
+            (dx_last - x_cut) / 1e9,
+        )
+        return fit
+
+    def _refit(self) -> None:
+        cfg = self.config
+        self._last_fit_x = self._x_last
+        self._prune()
+        X, R = self._points()
+        span = float(X.max() - X.min())
+        old = self._line
+        if not self._ever_locked and old is not None and X.shape[0] > 1:
+            # The floor came down by more than the prune margin since the last fit (a delay
+            # that is falling, a lag that wanders): the split differences of the earlier fits
+            # describe points that no longer hold the line, so they no longer count.
+            if float((R - old.d * X).min()) < old.a - self.config.prune_margin_ns:
+                self._u_hist.clear()
+        fit = self._fit(X, R, self._u_hist)
+        dx_last = float(self._x_last - self._x_ref)
+        line = EnvelopeLine(self._x_ref, self._y_ref, *fit[:5], False)
+        u_last = line.uncertainty1(dx_last)
         if self._ever_locked:
             # Hysteresis: a lock is not dropped for an uncertainty that wavers around the limit.
             locked = u_last <= cfg.unlock_factor * cfg.max_uncertainty_ns
@@ -436,6 +485,19 @@ class ClockMapper:
                 and span >= cfg.min_lock_span_ns
                 and u_last <= cfg.max_uncertainty_ns
             )
+            if (
+                not locked
+                and self._n >= cfg.min_points
+                and span >= 2 * cfg.min_lock_span_ns
+                and self._x_last - self._last_trial_x >= cfg.refit_interval_ns
+            ):
+                self._last_trial_x = self._x_last
+                newer = self._newer_part(X, R)
+                if newer is not None:
+                    fit, locked = newer, True
+                    line = EnvelopeLine(self._x_ref, self._y_ref, *fit[:5], False)
+                    u_last = line.uncertainty1(dx_last)
+        d, a, x_e, u0, u_slope, self._fit_span = fit
         self._line = EnvelopeLine(self._x_ref, self._y_ref, a, d, x_e, u0, u_slope, locked)
         if locked and not self._ever_locked:
             self._ever_locked = True
@@ -525,4 +587,5 @@ class ClockMapper:
             "span_s": span,
             "resets": self.n_resets,
             "reanchors": self.n_reanchors,
+            "floor_moves": self.n_floor_moves,
         }

@@ -75,6 +75,60 @@ class CounterUnwrapper:
         self._newest: int | None = None  # newest unwrapped value (ticks)
         self._newest_host: int | None = None
 
+    def many(self, raw: ArrayLike, host_ns: ArrayLike) -> IntArray:
+        """:meth:`__call__` for arrays of values received in order at ``host_ns``: the same
+        outputs and the same state, vectorised. Each stretch is unwrapped as a chain of steps and
+        checked against the per-value rule (nearest to the newest so far, plausible for the host
+        time elapsed); a value that fails the check (a reset) goes through :meth:`__call__`."""
+        r = np.asarray(raw, dtype=np.int64) % np.int64(self.modulus)
+        h = np.asarray(host_ns, dtype=np.int64)
+        if r.shape != h.shape or r.ndim != 1:
+            raise ValueError(f"CounterUnwrapper.many: raw {r.shape} and host {h.shape} differ")
+        out = np.empty(r.shape[0], dtype=np.int64)
+        i = 0
+        while i < r.shape[0]:
+            k = 0 if self._newest is None else self._run(r[i:], h[i:], out[i:])
+            i += k
+            if i < r.shape[0]:
+                out[i] = self(int(r[i]), int(h[i])) // self.tick_ns
+                i += 1
+        return out * np.int64(self.tick_ns)
+
+    def _run(self, r: IntArray, h: IntArray, out: IntArray) -> int:
+        """Unwrap the longest prefix of ``r`` that needs no reset into ``out`` (ticks); returns
+        its length and leaves the state as :meth:`__call__` would after it."""
+        m = np.int64(self.modulus)
+        newest0 = self._newest
+        assert newest0 is not None
+        first = r[0] + ((newest0 - r[0] + m // 2) // m) * m
+        step = np.diff(r) % m
+        step = np.where(step > m // 2, step - m, step)
+        cand = first + np.concatenate([[0], np.cumsum(step)])
+        # The newest value before each candidate, if every candidate is accepted.
+        newest = np.maximum.accumulate(np.concatenate([[newest0], cand]))
+        before = newest[:-1]
+        ok = cand == r + ((before - r + m // 2) // m) * m
+        is_new = cand > before
+        # Host time of the newest value before each candidate (it moves with every new max).
+        last = np.maximum.accumulate(np.where(is_new, np.arange(r.shape[0]), -1))
+        src = np.concatenate([[-1], last[:-1]])
+        h0 = self._newest_host
+        host_before = np.where(src >= 0, h[np.maximum(src, 0)], 0 if h0 is None else h0)
+        step_ns = (cand - before) * self.tick_ns
+        bound = (h - host_before).astype(np.float64) * (1.0 + self.max_drift) + self.slack_ns
+        plausible = (step_ns >= -self.slack_ns) & (step_ns <= bound)
+        ok &= plausible if h0 is not None else plausible | (src < 0)
+        k = r.shape[0] if ok.all() else int(np.argmin(ok))
+        if k == 0:
+            return 0
+        out[:k] = cand[:k]
+        top = int(newest[k])
+        if top > newest0:
+            self.n_wraps += top // self.modulus - newest0 // self.modulus
+            self._newest = top
+            self._newest_host = int(h[int(np.flatnonzero(is_new[:k])[-1])])
+        return k
+
     def __call__(self, raw: int, host_ns: int | None = None) -> int:
         m = self.modulus
         raw = int(raw) % m

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -20,7 +21,7 @@ from numpy.typing import NDArray
 
 from wristscan.daemon.sync.clockconfig import ClockConfig
 
-__all__ = ["EnvelopeLine", "fit_window", "support_slope"]
+__all__ = ["EnvelopeLine", "fit_window", "newer_floor", "support_slope"]
 
 FloatArray = NDArray[np.float64]
 
@@ -180,3 +181,45 @@ def fit_window(
     u_slope = us * pu / math.sqrt(us * us + pu * pu)
     a = float((R - d * X).min())
     return d, a, x_e, u0, u_slope
+
+
+Fit = tuple[float, float, float, float, float, float]
+"""``(d, a, x_e, u0, u_slope, span the slope rests on)``."""
+
+
+def newer_floor(
+    X: FloatArray,
+    R: FloatArray,
+    dx_last: float,
+    cfg: ClockConfig,
+    fit: Callable[[FloatArray, FloatArray], Fit],
+) -> tuple[Fit, float] | None:
+    """The fit of the longest newer part of the window (its newer half, quarter, ...: at least
+    ``min_lock_span_ns``) that would lock with the floor reached at its newest end, and where
+    that part starts; None if there is none. ``fit`` fits a part; ``dx_last``: the newest point.
+
+    Used before an epoch's first lock. A delay floor that rose (a sender that became late,
+    records held back behind a late one, a simulator that fell 1 s behind) leaves the older
+    arrivals lower than every later one, often as lone minima: the line rests on them, tilts,
+    and the split estimates disagree by the rise, so the epoch never locks (issue 21: nothing
+    published). Nothing has been mapped yet, so the fit may follow the newer floor instead (a
+    floor that comes down later re-anchors it). While the floor still rises (a lag growing),
+    no part reaches its floor at its newest end, and the epoch stays unlocked.
+    """
+    x_max = float(X.max())
+    part = 0.5 * float(x_max - X.min())
+    while part >= cfg.min_lock_span_ns:
+        newer = X >= x_max - part
+        part *= 0.5
+        if int(np.count_nonzero(newer)) < 6:
+            continue
+        Xn, Rn = X[newer], R[newer]
+        got = fit(Xn, Rn)
+        d, a, x_e, u0, u_slope = got[:5]
+        if math.hypot(u0, u_slope * (dx_last - x_e)) > cfg.max_uncertainty_ns:
+            continue
+        end = Xn >= x_max - 0.25 * float(x_max - Xn.min())
+        if float((Rn[end] - a - d * Xn[end]).min()) > cfg.jump_tolerance_ns:
+            continue  # the newest points are all late: the floor is still rising
+        return got, float(Xn.min())
+    return None

@@ -20,6 +20,9 @@ which puts the exposure directly on the controller clock: the sensor clock is no
 counter must increase monotonically while profiles are taken (a trigger counter or an axis moving
 one way); samples that do not increase are ignored.
 
+Profiles come as blocks (:meth:`Pairer.add_block`, the hot path: whole arrays, no Python step
+per profile; kept as they are, see :mod:`.pending`, and released as views of them) or as
+records (:meth:`Pairer.add_profile`); both give the same batches.
 Counters: ``received == paired + sum(dropped.values()) + pending`` holds after every call.
 Not thread-safe: one owner thread adds records and polls.
 """
@@ -40,7 +43,8 @@ from wristscan.daemon.sync.buffers import Reason, RobotStateBuffer, SampleBuffer
 from wristscan.daemon.sync.clockconfig import ClockConfig
 from wristscan.daemon.sync.clockmap import ClockMapper
 from wristscan.daemon.sync.counters import CounterUnwrapper, unwrap_nearest
-from wristscan.drivers.records import Profile, RobotState, TableState
+from wristscan.daemon.sync.pending import PendingProfiles
+from wristscan.drivers.records import Profile, ProfileBlock, RobotState, TableState
 
 logger = logging.getLogger(__name__)
 
@@ -186,12 +190,8 @@ class Pairer:
         # meaningless, so the buffer's own gap check is off and poll() checks the time gap.
         self.encoder = SampleBuffer(1, cfg.encoder_capacity, max_gap_ns=1 << 62)
         self._enc_last: int | None = None
-        # Pending profiles, in arrival order (parallel lists: cheap appends, one array per poll).
-        self._p_prof: list[Profile] = []
-        self._p_x: list[int] = []
-        self._p_epoch: list[int] = []
-        self._p_host: list[int] = []
-        self._p_sid: list[int] = []
+        # Pending profiles, in arrival order: their blocks and per-profile arrays.
+        self._pending = PendingProfiles()
         self._now = -(1 << 62)
         self.received = 0
         self.paired = 0
@@ -212,7 +212,7 @@ class Pairer:
     @property
     def pending(self) -> int:
         """Profiles waiting for the states they need."""
-        return len(self._p_prof)
+        return len(self._pending)
 
     @property
     def latest_host_ns(self) -> int:
@@ -231,6 +231,68 @@ class Pairer:
             self._sensor_clocks[sensor_id] = clk
         return clk
 
+    def _unwrapper(self, sid: int) -> CounterUnwrapper | None:
+        modulus = self.config.sensor_time_modulus_ns
+        if modulus is None:
+            return None
+        unw = self._sensor_unwrap.get(sid)
+        if unw is None:
+            unw = self._sensor_unwrap[sid] = CounterUnwrapper(modulus)
+        return unw
+
+    def add_block(self, block: ProfileBlock) -> None:
+        """Queue a block of profiles: the same as :meth:`add_profile` for each row in order,
+        vectorised. The block's arrays are kept (no copy) and batches view them: hand over
+        arrays that are not reused afterwards."""
+        P = block.n_profiles
+        if P == 0:
+            return
+        self.received += P
+        host = block.host_time_ns
+        top = int(host.max())
+        if top > self._now:
+            self._now = top
+        rows: IntArray | None = None
+        key: tuple[int, int] | None = None
+        if self.config.mode == "clock":
+            sid = block.sensor_id
+            s0 = int(sid[0])
+            if (sid == s0).all():
+                x, epoch = self._feed_sensor(s0, block.sensor_time_ns, host)
+                e0, e1 = int(epoch[0]), int(epoch[-1])  # epochs never decrease
+                key = (s0, e0) if e0 == e1 else None
+            else:
+                x = np.empty(P, dtype=np.int64)
+                epoch = np.empty(P, dtype=np.int64)
+                for s in np.unique(sid).tolist():
+                    g = np.flatnonzero(sid == s)
+                    x[g], epoch[g] = self._feed_sensor(s, block.sensor_time_ns[g], host[g])
+        else:
+            enc, ok = block.encoder, block.encoder_valid
+            if enc is None:
+                self.dropped["no_encoder_count"] += P
+                return
+            if ok is not None and not ok.all():
+                rows = np.flatnonzero(ok)
+                self.dropped["no_encoder_count"] += P - rows.shape[0]
+                enc = enc[rows]
+            x = enc.astype(np.int64)
+            epoch = np.zeros(x.shape[0], dtype=np.int64)
+        self._pending.add_block(block, rows, x, epoch, key)
+        self._trim()
+
+    def _feed_sensor(self, sid: int, t: IntArray, host: IntArray) -> tuple[IntArray, IntArray]:
+        """Unwrapped sensor times and their clock epochs, in arrival order."""
+        unw = self._unwrapper(sid)
+        x = t if unw is None else unw.many(t, host)
+        return x, self.sensor_clock(sid).feed_many(x, host)
+
+    def _trim(self) -> None:
+        excess = len(self._pending) - self.config.max_pending
+        if excess > 0:
+            self.dropped["pending_overflow"] += excess
+            self._pending.drop_oldest(excess)
+
     def add_profile(self, profile: Profile) -> None:
         """Queue a profile; it is released by a later :meth:`poll`."""
         self.received += 1
@@ -240,11 +302,8 @@ class Pairer:
         sid = profile.sensor_id
         if self.config.mode == "clock":
             x = profile.sensor_time_ns
-            modulus = self.config.sensor_time_modulus_ns
-            if modulus is not None:
-                unw = self._sensor_unwrap.get(sid)
-                if unw is None:
-                    unw = self._sensor_unwrap[sid] = CounterUnwrapper(modulus)
+            unw = self._unwrapper(sid)
+            if unw is not None:
                 x = unw(x, host)
             epoch = self.sensor_clock(sid).feed(x, host)
         else:
@@ -252,15 +311,8 @@ class Pairer:
                 self.dropped["no_encoder_count"] += 1
                 return
             x, epoch = int(profile.encoder), 0
-        self._p_prof.append(profile)
-        self._p_x.append(x)
-        self._p_epoch.append(epoch)
-        self._p_host.append(host)
-        self._p_sid.append(sid)
-        excess = len(self._p_prof) - self.config.max_pending
-        if excess > 0:
-            self.dropped["pending_overflow"] += excess
-            self._keep(np.arange(excess, len(self._p_prof)))
+        self._pending.add_record(profile, x, epoch)
+        self._trim()
 
     def add_robot_state(self, state: RobotState) -> None:
         """Add one controller sample (any order relative to profiles)."""
@@ -318,13 +370,14 @@ class Pairer:
     def poll(self, now_ns: int | None = None) -> list[PairedBatch]:
         """Release every pending profile that can be paired now; drop the hopeless and the
         timed-out ones. ``now_ns`` (host monotonic) defaults to the newest receipt seen."""
-        P = len(self._p_prof)
+        pend = self._pending
+        P = len(pend)
         if P == 0:
             return []
+        pend.consolidate()
         now = self._now if now_ns is None else max(int(now_ns), self._now)
         self._need_ns = {}
-        host = np.fromiter(self._p_host, np.int64, P)
-        x = np.fromiter(self._p_x, np.int64, P)
+        host, x = pend.host, pend.x
         status = np.zeros(P, dtype=np.int64)
         exposure = np.zeros(P, dtype=np.int64)
         unc = np.zeros(P)
@@ -340,10 +393,15 @@ class Pairer:
             self._pair_table(status, exposure, angle)
 
         waiting = (status > _READY) & (status < _D_FIRST)
-        self.waiting_for_states = int(np.count_nonzero((status == _W_ROBOT) | (status == _W_TABLE)))
-        late = waiting & (now - host > self.config.max_wait_ns)
-        drop = (status >= _D_FIRST) | late
-        if np.any(drop):
+        states = status == _W_ROBOT
+        if angle is not None:
+            states |= status == _W_TABLE
+        self.waiting_for_states = int(np.count_nonzero(states))
+        late = waiting & (host < now - self.config.max_wait_ns)
+        drop = status >= _D_FIRST
+        drop |= late
+        dropping = bool(drop.any())
+        if dropping:
             codes, counts = np.unique(status[drop], return_counts=True)
             for code, cnt in zip(codes.tolist(), counts.tolist(), strict=True):
                 self.dropped[_REASON_OF[code]] += cnt
@@ -359,8 +417,8 @@ class Pairer:
                 )
             self.paired += int(ready.shape[0])
             self.batches += len(batches)
-        if ready.shape[0] or np.any(drop):
-            self._keep(np.flatnonzero(waiting & ~late))
+        if ready.shape[0] or dropping:
+            self._pending.keep(np.flatnonzero(waiting ^ late))
         return batches
 
     def merge(self, batches: list[PairedBatch]) -> list[PairedBatch]:
@@ -381,8 +439,8 @@ class Pairer:
     def flush(self, now_ns: int | None = None) -> list[PairedBatch]:
         """Poll once more, then drop whatever still waits (reason ``flushed``)."""
         out = self.poll(now_ns)
-        self.dropped["flushed"] += len(self._p_prof)
-        self._keep(np.zeros(0, dtype=np.int64))
+        self.dropped["flushed"] += len(self._pending)
+        self._pending.clear()
         return out
 
     # ------------------------------------------------------------------ steps
@@ -390,17 +448,16 @@ class Pairer:
     def _map_sensor_times(
         self, x: IntArray, status: IntArray, exposure: IntArray, unc: FloatArray
     ) -> None:
-        sid = np.fromiter(self._p_sid, np.int64, x.shape[0])
-        epoch = np.fromiter(self._p_epoch, np.int64, x.shape[0])
+        pend = self._pending
         groups: list[tuple[tuple[int, int], slice | IntArray]]
-        if sid.min() == sid.max() and epoch.min() == epoch.max():
-            groups = [((int(sid[0]), int(epoch[0])), slice(None))]
+        one = pend.single_key()
+        if one is not None:
+            groups = [(one, slice(None))]
         else:
-            key = np.stack([sid, epoch], axis=1)
-            uniq = np.unique(key, axis=0)
-            groups = [
-                ((int(s), int(e)), np.flatnonzero((sid == s) & (epoch == e))) for s, e in uniq
-            ]
+            sid, epoch = pend.sid, pend.epoch
+            uniq = np.unique(np.stack([sid, epoch], axis=1), axis=0).tolist()
+            pend.set_keys({(s, e) for s, e in uniq})
+            groups = [((s, e), np.flatnonzero((sid == s) & (epoch == e))) for s, e in uniq]
         for (s, e), g in groups:
             clk = self._sensor_clocks[s]
             if clk.is_locked(e):
@@ -412,7 +469,7 @@ class Pairer:
                 status[g] = _W_CLOCK
 
     def _robot_lookup(
-        self, t_robot: IntArray, status: IntArray, m: IntArray, F: FloatArray
+        self, t_robot: IntArray, status: IntArray, m: slice | IntArray, F: FloatArray
     ) -> None:
         T, _, reason = self.robot.interpolate(t_robot)
         status[m] = _ROBOT_STATUS[reason]
@@ -420,9 +477,11 @@ class Pairer:
         self._note_need("robot", t_robot, reason)
 
     def _pair_robot_clock(self, status: IntArray, exposure: IntArray, F: FloatArray) -> None:
-        m = np.flatnonzero(status == _READY)
-        if m.shape[0] == 0:
-            return
+        m: slice | IntArray = slice(None)
+        if status.any():
+            m = np.flatnonzero(status == _READY)
+            if m.shape[0] == 0:
+                return
         if not self.robot_clock.locked:
             status[m] = _W_ROBOT_CLOCK
             return
@@ -494,36 +553,24 @@ class Pairer:
         angle: FloatArray | None,
         host: IntArray,
     ) -> PairedBatch:
-        profs = [self._p_prof[i] for i in sel.tolist()]
-        n = np.fromiter((p.y.shape[0] for p in profs), np.int64, len(profs))
-        offsets = np.zeros(len(profs) + 1, dtype=np.int64)
-        np.cumsum(n, out=offsets[1:])
-        intensity = None
-        if all(p.intensity is not None for p in profs):
-            intensity = np.concatenate([p.intensity for p in profs if p.intensity is not None])
+        g = self._pending.gather(sel)
         return PairedBatch(
-            sensor_id=np.fromiter((p.sensor_id for p in profs), np.int64, len(profs)),
-            frame_counter=np.fromiter((p.frame_counter for p in profs), np.int64, len(profs)),
+            sensor_id=g.sensor_id,
+            frame_counter=g.frame_counter,
             exposure_ns=exposure[sel],
             clock_uncertainty_ns=unc[sel],
             flange2base=F[sel],
             table_angle=angle,
-            y=np.concatenate([p.y for p in profs]),
-            z=np.concatenate([p.z for p in profs]),
-            valid=np.concatenate([p.valid for p in profs]),
-            intensity=intensity,
-            profile_index=np.repeat(np.arange(len(profs), dtype=np.uint32), n),
-            offsets=offsets,
+            y=g.y,
+            z=g.z,
+            valid=g.valid,
+            intensity=g.intensity,
+            offsets=g.offsets,
             arrival_ns=host[sel],
+            y_grid=g.y_grid,
+            segments=g.segments,
+            points_per_profile=g.points_per_profile,
         )
-
-    def _keep(self, idx: IntArray) -> None:
-        ids = idx.tolist()
-        self._p_prof = [self._p_prof[i] for i in ids]
-        self._p_x = [self._p_x[i] for i in ids]
-        self._p_epoch = [self._p_epoch[i] for i in ids]
-        self._p_host = [self._p_host[i] for i in ids]
-        self._p_sid = [self._p_sid[i] for i in ids]
 
     # ------------------------------------------------------------------ health
 

@@ -82,6 +82,12 @@ class SensorSimConfig:
     """Exposure to send."""
     stamp_delay_s: float | None = None
     """Exposure to the device timestamp (None: ``latency_s``, the device stamps when it sends)."""
+    send_late_s: tuple[float, float] = (0.0, 0.0)
+    """A sender that cannot keep its timing (issue 21), e.g. ``(0.005, 0.05)``: it wakes every
+    uniform(0, hi - lo) seconds and sends the profiles due at least ``lo`` before, so each
+    leaves ``lo`` to ``hi`` late, in order, in bursts. ``(0, 0)``: on time."""
+    send_late_spike_prob: float = 0.0
+    """With ``send_late_s``: the share of the sender's wake-ups 100-300 ms later still."""
     clock_offset_ns: int = 0
     clock_drift_ppm: float = 0.0
     clock_jitter_ns: float = 0.0
@@ -143,6 +149,9 @@ class SensorSimConfig:
             raise ValueError("precompute_s must be >= 0")
         if self.latency_s < 0 or (self.stamp_delay_s is not None and self.stamp_delay_s < 0):
             raise ValueError("latency_s and stamp_delay_s must be >= 0")
+        lo, hi = self.send_late_s
+        if not 0.0 <= lo <= hi or not 0.0 <= self.send_late_spike_prob <= 1.0:
+            raise ValueError("send_late_s must be 0 <= lo <= hi, send_late_spike_prob in [0, 1]")
         if self.is_scip and self.n_points > self.scip_ares:
             raise ValueError("a SCIP scan cannot have more steps (n_points) than ARES")
         if self.kind == "rf627-udp" and self.n_points > 16383:

@@ -28,7 +28,8 @@ instant; after that the newest sample is used and counted in ``truth_clamped``) 
 angle from the table ring, and ray-casts the scene from
 ``sensor2base = forward(robot_model, q) @ sensor2flange``. Without a robot ring the flange stays
 at ``standalone_flange_pose``. The device stamps the frame at ``t_k + stamp_delay_s`` (default
-``latency_s``) on its own :class:`~.clock.DeviceClock` and sends it at ``t_k + latency_s``.
+``latency_s``) on its own :class:`~.clock.DeviceClock` and sends it at ``t_k + latency_s`` (with
+``send_late_s``, 5-50 ms later say, in bursts: a sender that cannot keep its timing).
 Several exposures are ray-cast in one numpy call when they fall due together (high rates).
 If the process falls more than ``max_lag_s`` behind, exposures are skipped (counter gaps, as a
 real sensor with a full buffer does) and counted in ``overrun``.
@@ -62,6 +63,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from wristscan.calib import se3
 from wristscan.drivers.sim.clock import DeviceClock
+from wristscan.drivers.sim.late_sender import LateSender
 from wristscan.drivers.sim.process import SimProcess
 from wristscan.drivers.sim.scene import Scene, demo_scene, sensor_looking_down
 from wristscan.drivers.sim.sensor_config import (
@@ -205,6 +207,8 @@ _STAT_KEYS = (
 
 
 class _Runtime:
+    late: LateSender | None = None  # with send_late_s, from run() on
+
     def __init__(
         self,
         cfg: SensorSimConfig,
@@ -274,7 +278,7 @@ class _Runtime:
         self.t0_ns = time.monotonic_ns() + round(self.period_ns)
         self.k_next = 0
         self.counter_base = 0
-        self.queue: deque[tuple[int, list[bytes]]] = deque()
+        self.queue: deque[tuple[int, list[bytes], int]] = deque()  # (send at, units, due)
         self.max_chunk = 32
         self.held: bytes | None = None
         self.down_until_ns = 0
@@ -418,9 +422,10 @@ class _Runtime:
         t_exp = self.t0_ns + (ks * self.period_ns).astype(np.int64)
         batch = self._measure(ks, t_exp)
         send_due = t_exp + self.latency_ns
+        send_at = send_due if self.late is None else self.late.send_times(send_due)
         for p, units in enumerate(self.proto.encode(batch)):
             if units:
-                self.queue.append((int(send_due[p]), units))
+                self.queue.append((int(send_at[p]), units, int(send_due[p])))
         return self._t_exp(self.k_next) <= until
 
     def _truth(
@@ -509,7 +514,7 @@ class _Runtime:
         q = self.queue
         stats = self.stats
         while q and q[0][0] <= now_ns:
-            due, units = q.popleft()
+            at, units, due = q.popleft()
             for u in units:
                 self._emit(u)
             stats["profiles_sent"] += 1
@@ -518,7 +523,7 @@ class _Runtime:
                 self.sent[1].append(now_ns)
             # A late simulator sends in a burst, which a real sensor never does: counted so a
             # benchmark can tell the simulator's stalls from the daemon's.
-            late_us = (now_ns - due) // 1000
+            late_us = (now_ns - at) // 1000  # beyond the send time (and send_late_s)
             if late_us > 5000:
                 stats["sent_late_5ms"] += 1
             if late_us > stats["max_send_late_us"]:
@@ -527,6 +532,8 @@ class _Runtime:
     # -- loop -----------------------------------------------------------------------------------
 
     def run(self) -> None:
+        if self.cfg.send_late_s[1] > 0.0:
+            self.late = LateSender(self.cfg, self.rng, self.t0_ns)
         self.conn.send(("ready", self.link.endpoint()))
         batch_ns = self.gather_ns - self.precompute_ns  # wake this long after the next exposure
         while self.running:
