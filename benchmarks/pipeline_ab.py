@@ -10,6 +10,11 @@ working tree's script cannot import). Prints each run and the medians; exits 1 w
 p99 latency is worse than A's by more than ``--tolerance``.
 
     .venv/bin/python benchmarks/pipeline_ab.py fdd6f34 --pairs 3 --duration 15
+    .venv/bin/python benchmarks/pipeline_ab.py 26130b0 --pairs 5 --hot-path --rate 10000
+
+``--hot-path`` compares the in-process hot path instead (CPU per profile of each step; A as its
+own script measured it: until issue 21 a replica of the steps in ``benchmarks/pipeline.py``,
+since then ``benchmarks/hot_path.py`` driving the pipeline's own tick).
 """
 
 from __future__ import annotations
@@ -78,6 +83,30 @@ def _one_run(
     return row
 
 
+_HOT_PATH = """
+import json, sys
+sys.path.insert(0, {bench!r})
+try:
+    from hot_path import measure_hot_path
+except ImportError:  # a commit from before issue 21: the in-process figure lived in pipeline.py
+    from pipeline import measure_hot_path
+print(json.dumps(measure_hot_path({rate}, 2048)))
+"""
+
+
+def _hot_path_run(env: dict[str, str], rate: str, root: Path) -> dict[str, Any]:
+    """One in-process hot-path measurement (``benchmarks/hot_path.py``, or the ``pipeline.py``
+    of a commit from before it) in a fresh interpreter."""
+    code = _HOT_PATH.format(bench=str(root / "benchmarks"), rate=float(rate))
+    proc = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, cwd=root
+    )
+    if proc.returncode != 0:
+        raise RuntimeError(f"hot path run failed:\n{proc.stderr[-2000:]}")
+    row: dict[str, Any] = json.loads(proc.stdout.strip().splitlines()[-1])
+    return {"total_us": row["total_us"], **{k: v for k, v in row.items() if k.endswith("_us")}}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("commit", help="the A side: a commit of this repository")
@@ -91,6 +120,12 @@ def main() -> int:
         "--own-script",
         action="store_true",
         help="A runs the commit's own benchmarks/pipeline.py (a commit from before a move)",
+    )
+    ap.add_argument(
+        "--hot-path",
+        action="store_true",
+        help="compare the in-process hot path (CPU per profile) instead of the whole chain; A "
+        "runs the commit's own script (its measurement as it was then)",
     )
     ns = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="wristscan-ab-") as tmp:
@@ -110,7 +145,11 @@ def main() -> int:
                     if side == "A":
                         env["PYTHONPATH"] = str(view)
                         root = work / "tree" if ns.own_script else ROOT
-                    row = _one_run(env, work / f"{side}{i}.json", ns.rate, ns.duration, root)
+                    if ns.hot_path:
+                        root = work / "tree" if side == "A" else ROOT
+                        row = _hot_path_run(env, ns.rate, root)
+                    else:
+                        row = _one_run(env, work / f"{side}{i}.json", ns.rate, ns.duration, root)
                     rows[side].append(row)
                     shown = {k: round(v, 2) if isinstance(v, float) else v for k, v in row.items()}
                     print(f"{side} run {i + 1}: {shown}", flush=True)
@@ -131,6 +170,9 @@ def main() -> int:
         print(f"{side} ({ns.commit if side == 'A' else 'working tree'}) medians:")
         for k, v in med[side].items():
             print(f"  {k:24s} {v:12.2f}")
+    if ns.hot_path:
+        print(f"hot path total B / A: {med['B']['total_us'] / med['A']['total_us']:.2f}")
+        return 0
     ratio = med["B"]["latency_p99_ms"] / med["A"]["latency_p99_ms"]
     print(f"p99 latency B / A: {ratio:.2f} (tolerance {ns.tolerance})")
     return 0 if ratio <= ns.tolerance else 1

@@ -13,6 +13,11 @@
 3. A simulated LPF1-UDP sensor at 10 kHz (2048 points) into the driver for a few seconds: the
    fraction of profiles lost, and the part of it the receive path is responsible for (losses
    the simulator itself reports, overruns of an overloaded host, are subtracted). Reported.
+4. The hot path's read (issue 21): ``read_blocks`` of the UDP drivers, a tick's datagrams
+   received into one buffer and decoded in one vectorised step. CPU time of the reading thread
+   per 2048-point profile, receive system calls included, with a sender process blasting
+   prebuilt datagrams (target <= 3 us for LPF1; RF627 reported), and the decode alone
+   (``_on_datagrams`` on a buffer filled beforehand: headers, CRC-32, decode, bookkeeping).
 
 Run: ``.venv/bin/python benchmarks/sensor_drivers.py [--seconds 3] [--json out.json]``
 """
@@ -234,6 +239,123 @@ def through_socket(count: int) -> list[Figure]:
     return figs
 
 
+TARGET_BLOCK_US = 3.0
+"""Receive + decode per 2048-point LPF1 profile through read_blocks (issue 21)."""
+
+
+def _filled(drv: Any, units: list[bytes]) -> Any:
+    """The driver's block buffer holding ``units`` as one receive pass would."""
+    from wristscan.drivers._udp import Datagrams
+
+    stride = -(-max(len(u) for u in units) // 64) * 64
+    buf = bytearray(stride * len(units) + 65536)
+    for k, u in enumerate(units):
+        buf[k * stride : k * stride + len(u)] = u
+    n = len(units)
+    lengths = np.array([len(u) for u in units], np.int64)
+    return Datagrams(buf, memoryview(buf), stride, np.arange(n, dtype=np.int64), lengths,
+                     np.zeros(n, np.int64))  # fmt: skip
+
+
+def blocks_in_process(count: int, tick: int = 20) -> list[Figure]:
+    """``_on_datagrams`` per pass of ``tick`` datagrams (2 ms of a 10 kHz stream)."""
+    figs: list[Figure] = []
+    for name, make, units in (
+        ("lpf1-udp", Lpf1UdpSensor, lpf1_messages(count)),
+        ("rf627-udp", Rf627Sensor, rf627_datagrams(count)),
+    ):
+        best = float("inf")
+        for _ in range(3):
+            drv = make()
+            passes = [_filled(drv, units[a : a + tick]) for a in range(0, count, tick)]
+            t0 = time.thread_time()
+            got = sum(b.n_profiles for g in passes for b in drv._on_datagrams(g))
+            dt = time.thread_time() - t0
+            assert got == count, f"{got} of {count} profiles: {drv.health()}"
+            best = min(best, dt / count * 1e6)
+        figs.append(Figure(f"{name} block decode (no receive), per profile", best, "us CPU",
+                           "report", None))  # fmt: skip
+    return figs
+
+
+def _paced(kind: str, addr: tuple[str, int], count: int, burst: int, period_s: float) -> None:
+    """Sender process: the prebuilt datagrams in bursts of ``burst`` every ``period_s``
+    (10 kHz: 20 every 2 ms, what the pipeline's read-ahead finds at each step)."""
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4 << 20)
+    units = lpf1_messages(count) if kind == "lpf1" else rf627_datagrams(count)
+    next_t = time.monotonic()
+    for a in range(0, count, burst):
+        for u in units[a : a + burst]:
+            s.sendto(u, addr)
+        next_t += period_s
+        time.sleep(max(0.0, next_t - time.monotonic()))
+    s.close()
+
+
+def _paced_read(kind: str, cls: Any, count: int, blocks: bool) -> tuple[float, float, int]:
+    """CPU of the reading thread per profile (every call, empty ones too), profiles per call
+    that found some, profiles received: a 10 kHz sender, the driver read every 2 ms with
+    ``read_blocks`` (``blocks``) or ``read(timeout=0)`` until empty (the per-datagram path)."""
+    drv = cls(bind_host="127.0.0.1", port=0)
+    with drv:
+        assert drv.local_address is not None
+        proc = mp.get_context("spawn").Process(
+            target=_paced, args=(kind, drv.local_address, count, 20, 0.002)
+        )
+        proc.start()
+        n = calls = 0
+        cpu = cpu_to_last = 0.0
+        last_rx = time.monotonic() + 60.0  # the sender process starts and encodes first
+        while time.monotonic() < last_rx:
+            c0 = time.thread_time()
+            if blocks:
+                got = sum(b.n_profiles for b in drv.read_blocks(4096))
+            else:
+                got = 0
+                while drv.read(timeout=0.0) is not None:
+                    got += 1
+            if n or got:  # from the first profile to the last (empty polls between count)
+                cpu += time.thread_time() - c0
+            if got:
+                n += got
+                calls += 1
+                cpu_to_last = cpu
+                last_rx = time.monotonic() + 1.0
+            time.sleep(0.002)
+        proc.join(10)
+        if proc.is_alive():
+            proc.kill()
+            proc.join()
+        assert drv.health().counters.malformed == 0
+    return cpu_to_last / max(n, 1) * 1e6, n / max(calls, 1), n
+
+
+def blocks_through_socket(count: int, repeats: int = 3) -> list[Figure]:
+    """A sender process at 10 kHz (bursts of 20 every 2 ms); the driver reads as the
+    pipeline's worker does at each read-ahead step (every 2 ms, what has arrived). Both ways
+    of reading, alternated ``repeats`` times; the least CPU of each (the machine is shared)."""
+    figs: list[Figure] = []
+    for kind, cls in (("lpf1", Lpf1UdpSensor), ("rf627", Rf627Sensor)):
+        runs: dict[bool, list[tuple[float, float, int]]] = {True: [], False: []}
+        for _ in range(repeats):
+            for blocks in (True, False):
+                runs[blocks].append(_paced_read(kind, cls, count, blocks))
+        for blocks in (True, False):
+            per, per_call, _n = min(runs[blocks])
+            lost = max(100.0 * (count - r[2]) / count for r in runs[blocks])
+            how = "read_blocks" if blocks else "read (per datagram)"
+            ok = per <= TARGET_BLOCK_US if kind == "lpf1" and blocks else None
+            target = f"<= {TARGET_BLOCK_US:g}" if ok is not None else "report"
+            figs.append(Figure(f"{kind} {how}: receive + decode per profile, 10 kHz", per,
+                               "us CPU", target, ok))  # fmt: skip
+            if blocks:
+                figs.append(Figure(f"{kind} {how}: profiles per call", per_call, "", "report",
+                                   None))  # fmt: skip
+            figs.append(Figure(f"{kind} {how}: lost (worst run)", lost, "%", "report", None))
+    return figs
+
+
 def loss_at_10khz(seconds: float) -> list[Figure]:
     drv = Lpf1UdpSensor(bind_host="127.0.0.1", port=0)
     with drv:
@@ -286,6 +408,8 @@ def run(seconds: float = 3.0, count: int = 4000, json_out: str | None = None) ->
     figs = [Figure("load average (1 min) at start", os.getloadavg()[0], "", "report", None)]
     figs += in_process(count)
     figs += through_socket(count)
+    figs += blocks_in_process(count)
+    figs += blocks_through_socket(count)
     figs += loss_at_10khz(seconds)
     return report("sensor drivers", figs, json_out)
 
@@ -295,7 +419,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=3.0, help="10 kHz loss window")
     ap.add_argument("--count", type=int, default=4000, help="profiles per decode run")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--blocks-only", action="store_true", help="only the read_blocks figures")
     a = ap.parse_args(argv)
+    if a.blocks_only:
+        figs = [Figure("load average (1 min) at start", os.getloadavg()[0], "", "report", None)]
+        figs += blocks_in_process(a.count) + blocks_through_socket(a.count)
+        return report("sensor drivers: read_blocks", figs, a.json)
     return run(a.seconds, a.count, a.json)
 
 

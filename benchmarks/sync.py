@@ -924,10 +924,10 @@ def pair_ticks(st: TickStreams, blocks: bool, warm_ns: int = 500 * MS) -> dict[s
     pairer = Pairer(pairer_config(SENSOR_LATENCY_NS))
     interp, feed = [0], [0]
     robot = pairer.robot
-    robot.interpolate = _timed(robot.interpolate, interp)  # type: ignore[method-assign]
+    robot.interpolate = _timed(robot.interpolate, interp)  # type: ignore[method-assign,assignment]
     clk = pairer.sensor_clock(1)
-    clk.feed_many = _timed(clk.feed_many, feed)  # type: ignore[method-assign]
-    clk.feed = _timed(clk.feed, feed)  # type: ignore[method-assign]
+    clk.feed_many = _timed(clk.feed_many, feed)  # type: ignore[method-assign,assignment]
+    clk.feed = _timed(clk.feed, feed)  # type: ignore[method-assign,assignment]
     pi = np.searchsorted(st.arrive, st.ticks, side="right")
     ri = np.searchsorted(st.state_arrive, st.ticks, side="right")
     a = b = 0

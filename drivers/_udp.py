@@ -14,6 +14,16 @@ systems) the thread stamps on return, as before; ``health().detail["kernel_stamp
 
 UDP has no link to lose: the state stays OPEN and ``health().detail["stale"]`` says when nothing
 arrived for ``stale_after_s``.
+
+The hot path reads with :meth:`UdpProfileSensor.read_blocks`: every datagram available now is
+received into one buffer at fixed-stride offsets (a :class:`Datagrams` set: the buffer, each
+datagram's first row, length and stamp) and the whole set goes to the driver's
+``_on_datagrams``, which decodes what it can in one vectorised step and returns
+:class:`~wristscan.drivers.records.ProfileBlock` s in arrival order. On Linux one ``recvmmsg``
+system call receives up to ``mmsg_rows`` datagrams into 64 kB rows (:mod:`._mmsg`); elsewhere
+``recvmsg_into`` receives one per call into rows of the longest datagram seen (a longer one
+spans several rows, and the stride grows for the next pass). With ``recvmmsg`` the only Python
+work left per datagram is the decoder's CRC: lengths, sources and kernel stamps are arrays.
 """
 
 from __future__ import annotations
@@ -25,13 +35,18 @@ import struct
 import sys
 import time
 from abc import abstractmethod
+from dataclasses import dataclass
 from typing import Any
 
-from wristscan.drivers._sensor import SensorCore
-from wristscan.drivers.base import DriverInitError
-from wristscan.drivers.records import Profile
+import numpy as np
+from numpy.typing import NDArray
 
-__all__ = ["SO_TIMESTAMPNS", "UdpProfileSensor", "kernel_stamp"]
+from wristscan.drivers import _mmsg
+from wristscan.drivers._sensor import SensorCore
+from wristscan.drivers.base import DriverInitError, DriverIOError
+from wristscan.drivers.records import Profile, ProfileBlock
+
+__all__ = ["SO_TIMESTAMPNS", "Datagrams", "UdpProfileSensor", "kernel_stamp"]
 
 log = logging.getLogger(__name__)
 
@@ -42,6 +57,39 @@ SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35 if sys.platform.startswith
 stamps each datagram on arrival (CLOCK_REALTIME), see :func:`kernel_stamp`."""
 _TIMESPEC = struct.Struct("@qq")
 _ANC_SPACE = socket.CMSG_SPACE(_TIMESPEC.size)
+_STRIDE_ALIGN = 64
+"""Rows start on 64-byte boundaries (aligned arrays for the decoders)."""
+_FIRST_STRIDE = 8192
+_BUFFER_BYTES = 4 << 20
+"""Rows per receive pass: as many as fit in this many bytes (at least one)."""
+_RAW_LOG_KEEP = 8
+"""Frames the raw log holds (:class:`~wristscan.drivers.base.RawFrameLog`'s default)."""
+
+
+@dataclass(slots=True)
+class Datagrams:
+    """The datagrams of one receive pass, in arrival order, in one buffer.
+
+    Datagram ``i`` starts at byte ``rows[i] * stride`` of ``buf`` and is ``lengths[i]`` bytes
+    long; ``stamps[i]`` is its receipt time (host monotonic ns). The buffer is reused by the
+    next pass: decoders copy what they keep.
+    """
+
+    buf: bytearray
+    view: memoryview
+    stride: int
+    rows: NDArray[np.int64]
+    lengths: NDArray[np.int64]
+    stamps: NDArray[np.int64]
+    logged: int = 0
+    """Datagrams already added to the driver's raw frame log."""
+
+    def __len__(self) -> int:
+        return int(self.rows.shape[0])
+
+    def frame(self, i: int) -> memoryview:
+        start = int(self.rows[i]) * self.stride
+        return self.view[start : start + int(self.lengths[i])]
 
 
 def _resolve_ipv4(host: str) -> str:
@@ -92,6 +140,16 @@ def _real_minus_mono() -> int:
     return best
 
 
+def _fits_int64(p: Profile) -> Profile:
+    """``p`` with a frame counter or device time of 2**63 or more (64-bit unsigned on the wire;
+    only a faulty sender gets there) wrapped to the negative int64 a block's arrays hold,
+    as numpy's conversion of the vectorised path does."""
+    if p.frame_counter >= 1 << 63 or p.sensor_time_ns >= 1 << 63:
+        p.frame_counter = (p.frame_counter + (1 << 63)) % (1 << 64) - (1 << 63)
+        p.sensor_time_ns = (p.sensor_time_ns + (1 << 63)) % (1 << 64) - (1 << 63)
+    return p
+
+
 class UdpProfileSensor(SensorCore):
     """A sensor that streams profiles as UDP datagrams to a local port.
 
@@ -101,6 +159,12 @@ class UdpProfileSensor(SensorCore):
     """
 
     stale_after_s = 1.0
+    batch_receive = "auto"
+    """How :meth:`read_blocks` receives: ``"recvmmsg"`` (many datagrams per system call,
+    :mod:`wristscan.drivers._mmsg`), ``"recvmsg"`` (one per call) or ``"auto"`` (the first
+    where Linux offers it)."""
+    mmsg_rows = 64
+    """Datagrams per ``recvmmsg`` call (64 kB of buffer each)."""
     max_wait_s = 0.1
     """Longest single wait inside ``read``, so a ``close`` from another thread is seen soon."""
 
@@ -127,6 +191,11 @@ class UdpProfileSensor(SensorCore):
         """The socket receive buffer the kernel granted (bytes)."""
         self._buf = bytearray(MAX_DATAGRAM)
         self._view = memoryview(self._buf)
+        self._stride = _FIRST_STRIDE
+        self._block_buf = bytearray()
+        self._row_views: list[list[memoryview]] = []
+        self._views_stride = 0
+        self._mmsg: _mmsg.MmsgReceiver | None = None
         self._sock: socket.socket | None = None
         self._poll: select.poll | None = None
         self._source_ip: str | None = None
@@ -255,6 +324,190 @@ class UdpProfileSensor(SensorCore):
                     return ready
             if time.monotonic() >= deadline:
                 return None
+
+    def read_blocks(self, max_profiles: int = 4096) -> list[ProfileBlock]:
+        """Every datagram available now (at most ``max_profiles``), decoded as blocks in
+        arrival order (:meth:`_on_datagrams`); never waits."""
+        if not self._open_flag:
+            raise DriverIOError(f"{self.kind}: read on a closed device")
+        out: list[ProfileBlock] = []
+        budget = int(max_profiles)
+        held: list[Profile] = []
+        while self._ready and len(held) < budget:
+            held.append(_fits_int64(self._ready.popleft()))
+        if held:
+            out += ProfileBlock.from_profiles(held)
+            budget -= len(held)
+        while budget > 0:
+            grams, got, more = self._receive(budget)
+            if grams is not None:
+                out += self._on_datagrams(grams)
+            budget -= got
+            if not more:
+                break
+        self.counters.received += sum(b.n_profiles for b in out)
+        return out
+
+    def _rows_for(self, limit: int) -> int:
+        """Rows of this pass (the buffer and its row views made again when the stride grew)."""
+        stride = self._stride
+        if self._views_stride != stride:
+            rows = max(1, _BUFFER_BYTES // stride)
+            self._block_buf = bytearray(rows * stride + MAX_DATAGRAM)
+            view = memoryview(self._block_buf)
+            self._row_views = [[view[r * stride :]] for r in range(rows)]
+            self._views_stride = stride
+        return min(limit, len(self._row_views))
+
+    def _receive(self, limit: int) -> tuple[Datagrams | None, int, bool]:
+        """Up to ``limit`` datagrams into the block buffer (None: none kept), how many were
+        received (with those of a foreign source) and whether more may be waiting (the pass
+        ended on the limit or the buffer, not on an empty socket)."""
+        sock = self._sock
+        if sock is None:
+            return None, 0, False
+        mode = self.batch_receive
+        if mode == "recvmmsg" or (mode == "auto" and _mmsg.available()):
+            return self._receive_mmsg(sock, limit)
+        slots = self._rows_for(limit)
+        stride, views, kernel = self._stride, self._row_views, self.kernel_stamps
+        source = self._source_ip
+        rows: list[int] = []
+        lengths: list[int] = []
+        ancs: list[list[tuple[int, int, bytes]]] = []
+        own_stamps: list[int] = []
+        row, nbytes, got, more = 0, 0, 0, True
+        while row < slots and got < limit:
+            try:
+                if kernel:
+                    n, anc, _flags, addr = sock.recvmsg_into(views[row], _ANC_SPACE)
+                else:
+                    n, addr = sock.recvfrom_into(views[row][0])
+                    anc = []
+                    own = time.monotonic_ns()
+            except BlockingIOError:
+                more = False
+                break
+            except OSError as exc:
+                more = False
+                if self._sock is not None:  # not closed by another thread
+                    self.stats["socket_errors"] += 1
+                    self._last_error = str(exc)
+                break
+            nbytes += n
+            got += 1
+            if source is not None and addr[0] != source:
+                self.stats["foreign_source"] += 1
+                continue
+            rows.append(row)
+            lengths.append(n)
+            if kernel:
+                ancs.append(anc)
+            else:
+                own_stamps.append(own)
+            row += max(1, -(-n // stride))
+        self.counters.bytes += nbytes
+        if not rows:
+            if got:
+                self._last_rx_ns = time.monotonic_ns()
+            return None, got, more
+        stamps = self._stamps(ancs) if kernel else np.array(own_stamps, np.int64)
+        self._last_rx_ns = int(stamps[-1])
+        longest = max(lengths)
+        if longest > stride:
+            self._stride = -(-longest // _STRIDE_ALIGN) * _STRIDE_ALIGN
+        grams = Datagrams(
+            self._block_buf,
+            memoryview(self._block_buf),
+            stride,
+            np.array(rows, np.int64),
+            np.array(lengths, np.int64),
+            stamps,
+        )
+        return grams, got, more
+
+    def _receive_mmsg(self, sock: socket.socket, limit: int) -> tuple[Datagrams | None, int, bool]:
+        """:meth:`_receive` with one ``recvmmsg`` system call."""
+        rx = self._mmsg
+        if rx is None:
+            rx = self._mmsg = _mmsg.MmsgReceiver(self.mmsg_rows)
+        want = min(limit, rx.rows)
+        try:
+            n = rx.receive(sock.fileno(), want)
+        except (OSError, ValueError) as exc:  # ValueError: closed by another thread
+            if self._sock is not None:
+                self.stats["socket_errors"] += 1
+                self._last_error = str(exc)
+            return None, 0, False
+        if n == 0:
+            return None, 0, False
+        now = time.monotonic_ns()
+        lengths = rx.lengths(n)
+        self.counters.bytes += int(lengths.sum())
+        rows = np.arange(n, dtype=np.int64)
+        if self._source_ip is not None:
+            mine = rx.sources(n) == np.frombuffer(socket.inet_aton(self._source_ip), np.uint32)[0]
+            if not mine.all():
+                self.stats["foreign_source"] += int(n - mine.sum())
+                rows, lengths = rows[mine], lengths[mine]
+        real = rx.realtime_stamps(n) if self.kernel_stamps else None
+        if real is None:
+            stamps = np.full(n, now, np.int64)
+        else:
+            stamps = np.minimum(real - _offset_at(now), now)
+        self._last_rx_ns = int(stamps[-1])
+        if rows.shape[0] < n:
+            stamps = stamps[rows]
+        if rows.shape[0] == 0:
+            return None, n, n == want
+        grams = Datagrams(rx.buf, memoryview(rx.buf), _mmsg.ROW_BYTES, rows, lengths, stamps)
+        return grams, n, n == want
+
+    @staticmethod
+    def _stamps(ancs: list[list[tuple[int, int, bytes]]]) -> NDArray[np.int64]:
+        """The kernel's receipt times on the monotonic clock, all at once (as
+        :func:`kernel_stamp` does one by one)."""
+        now = time.monotonic_ns()
+        try:
+            raw = b"".join(
+                [
+                    a[0][2]
+                    for a in ancs
+                    if a[0][0] == socket.SOL_SOCKET and a[0][1] == SO_TIMESTAMPNS
+                ]
+            )
+        except IndexError:
+            raw = b""
+        if len(raw) != len(ancs) * _TIMESPEC.size:
+            return np.array([kernel_stamp(a, now) for a in ancs], np.int64)
+        ts = np.frombuffer(raw, np.int64).reshape(-1, 2)
+        stamps = ts[:, 0] * 1_000_000_000 + ts[:, 1] - _offset_at(now)
+        return np.minimum(stamps, now)
+
+    def _datagram_slow(self, grams: Datagrams, i: int, records: list[Profile]) -> None:
+        """Datagram ``i`` through the per-datagram path (``_on_datagram``), the raw frame log
+        brought up to it first (a rejection dumps the frames that came before); the profiles
+        it completes are appended to ``records``."""
+        self._log_raw(grams, i + 1)
+        self._on_datagram(grams.frame(i), int(grams.stamps[i]))
+        ready = self._ready
+        while ready:
+            records.append(_fits_int64(ready.popleft()))
+
+    def _log_raw(self, grams: Datagrams, upto: int) -> None:
+        """The raw frame log as if datagrams ``0 .. upto - 1`` had been added one by one."""
+        for j in range(max(grams.logged, upto - _RAW_LOG_KEEP), upto):
+            self.raw_log.add(grams.frame(j))
+        grams.logged = max(grams.logged, upto)
+
+    def _on_datagrams(self, grams: Datagrams) -> list[ProfileBlock]:
+        """Decode a pass's datagrams into blocks, in arrival order. This default sends each
+        through ``_on_datagram``; drivers that decode many at once override it."""
+        records: list[Profile] = []
+        for i in range(len(grams)):
+            self._datagram_slow(grams, i, records)
+        self._log_raw(grams, len(grams))
+        return ProfileBlock.from_profiles(records)
 
     @property
     def stale(self) -> bool:

@@ -326,6 +326,8 @@ class ProfileSensor(Device[Profile]):
     def __init__(self, sensor_id: int = 0) -> None:
         super().__init__()
         self.sensor_id = sensor_id
+        self._last_counter: int | None = None
+        """The frame counter of the last delivered profile (None: no history)."""
         self._held_error: DriverError | None = None
 
     def read_blocks(self, max_profiles: int = 4096) -> list[ProfileBlock]:
@@ -349,7 +351,6 @@ class ProfileSensor(Device[Profile]):
                 break
             records.append(rec)
         return ProfileBlock.from_profiles(records)
-        self._last_counter: int | None = None
 
     def _account_counter(self, counter: int, modulo: int = 1 << 64) -> bool:
         """Book-keep a frame counter: count gaps as lost, drop duplicates. Returns False for a

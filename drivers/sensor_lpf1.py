@@ -6,6 +6,10 @@ reassembled, profiles decoded and booked by frame counter (lost, duplicates, reo
 HEARTBEAT, HELLO and STATUS messages are counted in ``health().detail`` and never become
 profiles. A HELLO whose frame counter is behind the last delivered profile announces a device
 reboot: the counter history restarts instead of counting the whole history as late frames.
+
+The UDP driver's ``read_blocks`` (the daemon's hot path) decodes the whole PROFILE messages of a
+receive pass together (:mod:`wristscan.drivers.lpf1_block`) and everything else through the
+same per-message handling as ``read``: the same profiles, counters and health detail.
 """
 
 from __future__ import annotations
@@ -15,12 +19,13 @@ from typing import Any, ClassVar
 
 from cobs import cobs
 
-from wristscan.drivers import lpf1
+from wristscan.drivers import lpf1, lpf1_block
 from wristscan.drivers._sensor import SensorCore
 from wristscan.drivers._stream import Chunk, StreamProfileSensor, TcpTransport, Transport, open_url
-from wristscan.drivers._udp import UdpProfileSensor
+from wristscan.drivers._udp import Datagrams, UdpProfileSensor
 from wristscan.drivers.base import DriverInitError
 from wristscan.drivers.lpf1_reader import Reassembler, SerialDecoder, StreamDecoder
+from wristscan.drivers.records import Profile, ProfileBlock
 
 __all__ = ["Lpf1SerialSensor", "Lpf1TcpSensor", "Lpf1UdpSensor"]
 
@@ -123,6 +128,29 @@ class Lpf1UdpSensor(UdpProfileSensor):
             self._reject(str(exc))
             return
         self.lpf1.handle(msg, host_time_ns)
+
+    def _on_datagrams(self, grams: Datagrams) -> list[ProfileBlock]:
+        """A pass's datagrams: runs of whole PROFILE messages of one shape decoded as one
+        block each (:mod:`wristscan.drivers.lpf1_block`), the others one by one; the blocks
+        in arrival order."""
+        headers = lpf1_block.read_headers(grams)
+        out: list[ProfileBlock] = []
+        records: list[Profile] = []
+        for run in lpf1_block.plan(grams, headers, self.expected_sensor_id):
+            if not run.fast:
+                for i in range(run.start, run.stop):
+                    self._datagram_slow(grams, i, records)
+                continue
+            if records:
+                out += ProfileBlock.from_profiles(records)
+                records = []
+            kept = self._deliver_block(lpf1_block.decode_run(grams, headers, run))
+            if kept is not None:
+                out.append(kept)
+        if records:
+            out += ProfileBlock.from_profiles(records)
+        self._log_raw(grams, len(grams))
+        return out
 
     def _health_detail(self) -> dict[str, Any]:
         return {**super()._health_detail(), **self.lpf1.detail()}

@@ -13,6 +13,11 @@ header (damage in the point data cannot be detected):
   the stream. A packet failing it is held back; if the next, newer packet agrees with it (a
   device reboot or clock step) the driver restarts its bookkeeping from there, otherwise it was
   damage.
+
+``read_blocks`` decodes the packets that pass both checks with certainty (the locked fields
+equal, the counter and the clock agree for every period the learnt one can have become within
+the pass) in blocks (:mod:`wristscan.drivers.rf627_block`); the others go one by one through
+the same checks as ``read``, with the same counts.
 """
 
 from __future__ import annotations
@@ -22,8 +27,12 @@ import statistics
 from collections import deque
 from typing import Any, ClassVar
 
-from wristscan.drivers import rf627
-from wristscan.drivers._udp import UdpProfileSensor
+import numpy as np
+from numpy.typing import NDArray
+
+from wristscan.drivers import rf627, rf627_block
+from wristscan.drivers._udp import Datagrams, UdpProfileSensor
+from wristscan.drivers.records import Profile, ProfileBlock
 
 __all__ = ["Rf627Sensor"]
 
@@ -161,6 +170,94 @@ class Rf627Sensor(UdpProfileSensor):
             if len(self._steps) >= 3:
                 self._period = float(statistics.median(self._steps))
         self._ref = (count, stamp)
+
+    def _on_datagrams(self, grams: Datagrams) -> list[ProfileBlock]:
+        """Runs of packets that certainly pass the checks as blocks, the others one by one;
+        the blocks in arrival order."""
+        headers = rf627_block.read_headers(grams)
+        out: list[ProfileBlock] = []
+        records: list[Profile] = []
+        ok: NDArray[np.bool_] | None = None
+        locked: tuple[int, ...] | None = None
+        i, k = 0, len(grams)
+        while i < k:
+            m, steps, last = 0, list[int](), (0, 0)
+            if self._signature is not None and self._steady():
+                if ok is None or locked != self._signature:
+                    locked = self._signature
+                    ok = rf627_block.matching(grams, headers, locked, self.expected_sensor_id)
+                m, steps, last = self._certain_run(headers, ok, i)
+            if m == 0:
+                self._datagram_slow(grams, i, records)
+                i += 1
+                continue
+            if records:
+                out += ProfileBlock.from_profiles(records)
+                records = []
+            block = rf627_block.decode_rows(grams, headers, i, i + m, self.time_unit_ns)
+            kept = self._deliver_block(block, _MOD32)
+            if kept is not None:
+                out.append(kept)
+            self._advance(steps, last)
+            i += m
+        if records:
+            out += ProfileBlock.from_profiles(records)
+        self._log_raw(grams, k)
+        return out
+
+    def _steady(self) -> bool:
+        """Locked, the period learnt, the last delivered packet the reference."""
+        ref = self._ref
+        return self._period is not None and ref is not None and self._last_counter == ref[0]
+
+    def _certain_run(
+        self, h: NDArray[Any], ok: NDArray[np.bool_], i: int
+    ) -> tuple[int, list[int], tuple[int, int]]:
+        """How many packets from ``i`` on pass every check whatever the learnt period becomes
+        meanwhile (it stays between the least and the greatest one-frame step seen here or
+        in its window) and
+        continue the counter: the slow path would deliver each of them. With their one-frame
+        clock steps and the last one's (counter, clock)."""
+        assert self._ref is not None
+        c = h["measure_count"][i:].astype(np.int64)
+        t = h["system_time"][i:].astype(np.int64)
+        dc = np.empty_like(c)
+        dc[0] = c[0] - self._ref[0]
+        np.subtract(c[1:], c[:-1], out=dc[1:])
+        dc &= _MOD32 - 1
+        dti = np.empty_like(t)
+        dti[0] = t[0] - self._ref[1]
+        np.subtract(t[1:], t[:-1], out=dti[1:])
+        one = dc == 1
+        ones = dti[one]
+        lo = min(self._steps) if ones.size == 0 else min(min(self._steps), int(ones.min()))
+        hi = max(self._steps) if ones.size == 0 else max(max(self._steps), int(ones.max()))
+        # |dt - dc p| <= (0.5 + 0.01 dc) p for every period p in [lo, hi] (the condition is
+        # convex in p: both ends suffice), i.e. hi (dc - tol) <= dt <= lo (dc + tol); a hair
+        # inside, so that borderline packets go one by one.
+        n = dc.astype(np.float64)
+        k = 1.0 - 1e-9
+        dt = dti.astype(np.float64)
+        cond = ok[i:] & ((dc - 1).view(np.uint64) < np.uint64(1 << 30))
+        cond &= dt >= hi * (n * (1.0 - 0.01 * k) - 0.5 * k)
+        cond &= dt <= lo * (n * (1.0 + 0.01 * k) + 0.5 * k)
+        if lo <= 0:
+            cond[:] = False
+        m = int(cond.shape[0]) if cond.all() else int(np.argmin(cond))
+        if m == 0:
+            return 0, [], self._ref
+        return m, dti[:m][one[:m]].tolist(), (int(c[m - 1]), int(t[m - 1]))
+
+    def _advance(self, steps: list[int], ref: tuple[int, int]) -> None:
+        """The state the slow path leaves after delivering a certain run (its one-frame clock
+        steps, the last packet's counter and clock)."""
+        self._steps.extend(steps)
+        if len(self._steps) >= 3:
+            self._period = float(statistics.median(self._steps))
+        self._ref = ref
+        self._held = None
+        self._holds = 0
+        self._candidate_sig = None
 
     def _health_detail(self) -> dict[str, Any]:
         return {

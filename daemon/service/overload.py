@@ -55,7 +55,7 @@ class Shedder:
     def __init__(
         self,
         utilisation: float = 0.9,
-        burst_s: float = 0.05,
+        burst_s: float = 0.25,
         smoothing: float = 0.1,
         min_profiles: int = 10,
     ) -> None:

@@ -1,0 +1,174 @@
+"""``recvmmsg(2)`` for the UDP drivers: every waiting datagram in one system call.
+
+Python's socket module receives one datagram per call (``recvmsg_into``: about 2 µs of
+interpreter and system-call overhead each, as much as the kernel's own work on a 4 kB
+datagram). Linux's ``recvmmsg`` fills many at once; it is reached through :mod:`ctypes` (the C
+library's own function, no compiled code of ours), with the message headers, the source
+addresses and the ancillary data (``SO_TIMESTAMPNS`` stamps) laid out as numpy arrays, so that
+lengths, sources and stamps of a whole pass are read as arrays.
+
+Each datagram gets a row of :data:`ROW_BYTES` (64 kB: the largest UDP payload fits, nothing is
+ever truncated). :func:`available` is False off Linux, on other than 64-bit C layouts, or when
+the C library lacks the call: the drivers then receive with ``recvmsg_into``.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import errno
+import os
+import select
+import socket
+import sys
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ["ROW_BYTES", "MmsgReceiver", "available"]
+
+ROW_BYTES = 65536
+_MSG_DONTWAIT = 0x40
+_SCM_TIMESTAMPNS = 35  # Linux asm-generic (SO_TIMESTAMPNS)
+_NAME_BYTES = 16  # struct sockaddr_in
+_CMSG_BYTES = socket.CMSG_SPACE(16)  # one struct timespec
+
+_MMSGHDR = np.dtype(
+    [
+        ("name", "<u8"),
+        ("namelen", "<u4"),
+        ("pad0", "<u4"),
+        ("iov", "<u8"),
+        ("iovlen", "<u8"),
+        ("control", "<u8"),
+        ("controllen", "<u8"),
+        ("flags", "<i4"),
+        ("pad1", "<u4"),
+        ("len", "<u4"),
+        ("pad2", "<u4"),
+    ]
+)
+"""``struct mmsghdr`` (a ``struct msghdr`` and the received length) on 64-bit Linux."""
+_CMSG = np.dtype(
+    [("len", "<u8"), ("level", "<i4"), ("type", "<i4"), ("sec", "<i8"), ("nsec", "<i8")]
+)
+"""A ``struct cmsghdr`` holding one ``struct timespec``."""
+
+
+def _load() -> Callable[..., int] | None:
+    little = sys.byteorder == "little"
+    if not sys.platform.startswith("linux") or ctypes.sizeof(ctypes.c_void_p) != 8 or not little:
+        return None
+    try:
+        fn: Any = ctypes.CDLL(None, use_errno=True).recvmmsg
+    except (OSError, AttributeError):
+        return None
+    fn.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.c_uint, ctypes.c_int, ctypes.c_void_p]
+    fn.restype = ctypes.c_int
+    f: Callable[..., int] = fn
+    return f
+
+
+_recvmmsg = _load()
+
+
+_checked: list[bool] = []
+
+
+def available() -> bool:
+    """``recvmmsg`` can be used here: the call exists and, tried once on a loopback socket,
+    hands back the datagrams, lengths, source and stamp as this module lays them out."""
+    if not _checked:
+        ok = _recvmmsg is not None and _MMSGHDR.itemsize == 64 and _CMSG.itemsize == _CMSG_BYTES
+        _checked.append(ok and _self_test())
+    return _checked[0]
+
+
+def _self_test() -> bool:
+    """Two datagrams to a loopback socket of our own, received in one call and read back."""
+    sent = [b"wristscan", b"recvmmsg!!"]
+    try:
+        with (
+            socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rx,
+            socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx,
+        ):
+            rx.bind(("127.0.0.1", 0))
+            rx.setsockopt(socket.SOL_SOCKET, _SCM_TIMESTAMPNS, 1)
+            for payload in sent:
+                tx.sendto(payload, rx.getsockname())
+            select.select([rx], [], [], 1.0)
+            time.sleep(0.005)  # loopback queues both at once; a loaded machine may lag
+            r = MmsgReceiver(4)
+            n = r.receive(rx.fileno(), 4)
+            if n != len(sent):
+                return False
+            lengths = r.lengths(n).tolist()
+            got = [bytes(r.buf[k * ROW_BYTES : k * ROW_BYTES + lengths[k]]) for k in range(n)]
+            sources = {socket.inet_ntoa(a.tobytes()) for a in r.sources(n)}
+            stamps = r.realtime_stamps(n)
+    except OSError:
+        return False
+    return (
+        got == sent
+        and sources == {"127.0.0.1"}
+        and stamps is not None
+        and bool(np.all(np.abs(stamps - time.time_ns()) < 60_000_000_000))
+    )
+
+
+class MmsgReceiver:
+    """Receives up to ``rows`` datagrams per call into :attr:`buf`, datagram ``i`` at byte
+    ``i * ROW_BYTES``; its length, source address and kernel stamp read back as arrays."""
+
+    def __init__(self, rows: int) -> None:
+        if _recvmmsg is None:
+            raise OSError("recvmmsg is not available here")
+        self.rows = int(rows)
+        self.buf = bytearray(self.rows * ROW_BYTES)
+        self._data = np.frombuffer(self.buf, np.uint8)  # pins the buffer (never resized)
+        self._names = np.zeros((self.rows, _NAME_BYTES), np.uint8)
+        self._ctrl = np.zeros(self.rows, _CMSG)
+        self._iov = np.zeros((self.rows, 2), np.uint64)
+        k = np.arange(self.rows, dtype=np.uint64)
+        self._iov[:, 0] = self._data.ctypes.data + k * np.uint64(ROW_BYTES)
+        self._iov[:, 1] = ROW_BYTES
+        hdr = np.zeros(self.rows, _MMSGHDR)
+        hdr["name"] = self._names.ctypes.data + k * np.uint64(_NAME_BYTES)
+        hdr["iov"] = self._iov.ctypes.data + k * np.uint64(16)
+        hdr["iovlen"] = 1
+        hdr["control"] = self._ctrl.ctypes.data + k * np.uint64(_CMSG_BYTES)
+        self._hdr = hdr
+        self._hdr_ptr = ctypes.c_void_p(hdr.ctypes.data)
+
+    def receive(self, fd: int, limit: int) -> int:
+        """Datagrams received now, without waiting (0: none waiting); ``OSError`` otherwise."""
+        k = max(1, min(int(limit), self.rows))
+        hdr = self._hdr[:k]
+        hdr["namelen"] = _NAME_BYTES
+        hdr["controllen"] = _CMSG_BYTES
+        assert _recvmmsg is not None
+        n = _recvmmsg(fd, self._hdr_ptr, k, _MSG_DONTWAIT, None)
+        if n < 0:
+            err = ctypes.get_errno()
+            if err in (errno.EAGAIN, errno.EWOULDBLOCK, errno.EINTR):
+                return 0
+            raise OSError(err, os.strerror(err))
+        return n
+
+    def lengths(self, n: int) -> NDArray[np.int64]:
+        return self._hdr["len"][:n].astype(np.int64)
+
+    def sources(self, n: int) -> NDArray[np.uint32]:
+        """The IPv4 source addresses (network byte order, as ``socket.inet_aton`` gives)."""
+        return self._names[:n, 4:8].copy().view(np.uint32)[:, 0]
+
+    def realtime_stamps(self, n: int) -> NDArray[np.int64] | None:
+        """The kernel's CLOCK_REALTIME receipt stamps (ns); None unless every datagram has one."""
+        c = self._ctrl[:n]
+        ok = (self._hdr["controllen"][:n] >= _CMSG_BYTES) & (c["level"] == socket.SOL_SOCKET)
+        ok &= c["type"] == _SCM_TIMESTAMPNS
+        if not ok.all():
+            return None
+        return c["sec"] * 1_000_000_000 + c["nsec"]
