@@ -78,13 +78,23 @@ class Wsc1Frame:
 
     __slots__ = ("buffer", "intensity", "n_points", "profile_index", "xyz")
 
-    def __init__(self, n_points: int, *, intensity: bool = False, profile_index: bool = False):
+    def __init__(
+        self,
+        n_points: int,
+        *,
+        intensity: bool = False,
+        profile_index: bool = False,
+        reuse: bytearray | None = None,
+    ):
+        """``reuse``: an earlier payload nobody holds any more, resized and written over (every
+        byte of a payload is written: the header by :meth:`finish`, the blocks by the caller),
+        which saves zeroing and mapping megabytes per batch."""
         n = int(n_points)
         if n < 0:
             raise ValueError(f"n_points must be >= 0, got {n_points}")
         self.n_points = n
         size = HEADER.size + 12 * n + (n if intensity else 0) + (4 * n if profile_index else 0)
-        self.buffer = bytearray(size)
+        self.buffer = bytearray(size) if reuse is None else _resized(reuse, size)
         off = HEADER.size
         self.xyz: NDArray[np.float32] = np.frombuffer(self.buffer, "<f4", 3 * n, off).reshape(n, 3)
         off += 12 * n
@@ -134,6 +144,18 @@ RowGroup = tuple[
 None, ``intensity`` (k, N) or None (a segment of a paired batch)."""
 
 
+def _resized(buf: bytearray, size: int) -> bytearray:
+    """``buf`` made ``size`` bytes long in place (a fresh one while views of it are alive)."""
+    try:
+        if len(buf) > size:
+            del buf[size:]
+        elif len(buf) < size:
+            buf.extend(bytes(size - len(buf)))
+    except BufferError:  # numpy views of an earlier frame still alive
+        return bytearray(size)
+    return buf
+
+
 def aligned_frame(
     y: NDArray[np.floating],
     z: NDArray[np.floating],
@@ -159,10 +181,12 @@ def aligned_frame_of(
     intensity: bool = False,
     profile_index: bool = False,
     check_finite: bool = True,
+    reuse: bytearray | None = None,
 ) -> Wsc1Frame:
     """:func:`aligned_frame` for profiles held as consecutive groups (the segments of a paired
     batch, views of the blocks they arrived in): each group aligned into its own slice of one
-    payload, nothing concatenated first. ``sensor2frame`` (P, 4, 4) for all of them, in order."""
+    payload, nothing concatenated first. ``sensor2frame`` (P, 4, 4) for all of them, in order;
+    ``reuse`` as in :class:`Wsc1Frame`."""
     counts: list[int] = []
     kept: list[NDArray[np.bool_] | None] = []
     for _, z, valid, inten in groups:
@@ -178,7 +202,7 @@ def aligned_frame_of(
             valid = None
         kept.append(valid)
         counts.append(zs[0] * zs[1] if valid is None else int(np.count_nonzero(valid)))
-    frame = Wsc1Frame(sum(counts), intensity=intensity, profile_index=profile_index)
+    frame = Wsc1Frame(sum(counts), intensity=intensity, profile_index=profile_index, reuse=reuse)
     o = row = 0
     for (y, z, _, inten), valid, c in zip(groups, kept, counts, strict=True):
         k = z.shape[0]

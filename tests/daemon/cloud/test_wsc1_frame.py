@@ -209,3 +209,23 @@ def test_aligned_frame_holds_the_valid_points_with_their_blocks(invalid: str) ->
         wsc1.aligned_frame(y, z, valid, poses, intensity=inten[:, :10])
     with pytest.raises(ValueError, match=r"must be \(P, N\) alike"):
         wsc1.aligned_frame(y, z, valid[:, :10], poses)
+
+
+def test_a_frame_reuses_a_free_payload_and_never_one_in_use() -> None:
+    first = wsc1.Wsc1Frame(1000)
+    first.xyz[...] = 1.0
+    buf = first.finish(seq=1, t_first_ns=0, t_last_ns=0, n_profiles=1)
+    kept = bytes(buf)
+    # While the first frame's views are alive its buffer cannot change size: a new one is made.
+    second = wsc1.Wsc1Frame(900, reuse=buf)
+    assert second.buffer is not buf and bytes(buf) == kept
+    del first, second
+    # Free now: written over in place, at the new size, and a valid message once finished.
+    third = wsc1.Wsc1Frame(900, reuse=buf)
+    assert third.buffer is buf and len(buf) == 64 + 12 * 900
+    third.xyz[...] = 2.0
+    cloud = wsc1.decode(third.finish(seq=2, t_first_ns=5, t_last_ns=6, n_profiles=3))
+    assert cloud.seq == 2 and cloud.n_points == 900 and np.all(cloud.xyz == 2.0)
+    del third, cloud
+    fourth = wsc1.Wsc1Frame(1200, reuse=buf, intensity=True)  # grows
+    assert fourth.buffer is buf and len(buf) == 64 + 13 * 1200

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from wristscan.daemon.cloud import wsc1
 from wristscan.daemon.service.overload import Shedder, spread_rows, take_rows
 from wristscan.daemon.service.pipeline import AlignmentSetup, Pipeline
 from wristscan.daemon.sync.pairing import Pairer, PairerConfig
@@ -235,3 +236,44 @@ def test_the_pipeline_sheds_under_overload_and_recovers() -> None:
     late = times > 4.6
     assert counts[late].sum() >= 0.9 * 500 * (times[late].max() - 4.6), counts[late].sum()
     assert st["overload"]["shedding"] is False
+
+
+def test_a_payload_kept_by_the_publisher_is_never_written_over() -> None:
+    """The worker writes each batch into the last payload again when nobody holds it (zenoh
+    copies what it is given); one the publisher kept must stay as it was."""
+    sensor = Lpf1UdpSensor(bind_host="127.0.0.1", port=0)
+    robot = _StateRobot()
+    kept: list[bytearray] = []
+
+    def publish(cloud: Any, t0: int, t1: int, n_profiles: int, frame_id: str, *_: Any) -> int:
+        if len(kept) % 2:  # every other payload kept, the others dropped (free for reuse)
+            kept.append(cloud.finish(seq=len(kept), t_first_ns=t0, t_last_ns=t1,
+                                     n_profiles=n_profiles, frame_id=frame_id))  # fmt: skip
+        else:
+            kept.append(bytearray(bytes(cloud.finish(seq=len(kept), t_first_ns=t0, t_last_ns=t1,
+                                                     n_profiles=n_profiles))))  # fmt: skip
+        return len(kept) - 1
+
+    sensor.open()
+    robot.open()
+    pipeline = Pipeline(sensor, robot, Pairer(PairerConfig()), AlignmentSetup(np.eye(4)), publish)
+    assert sensor.local_address is not None
+    sender = multiprocessing.get_context("fork").Process(
+        target=_send, args=(sensor.local_address, [(1000.0, 1.5)])
+    )
+    try:
+        pipeline.start()
+        sender.start()
+        sender.join(30.0)
+        time.sleep(0.3)
+    finally:
+        if sender.is_alive():
+            sender.kill()
+            sender.join()
+        pipeline.stop()
+        sensor.close()
+        robot.close()
+    assert len(kept) > 20
+    clouds = [wsc1.decode(b) for b in kept]
+    assert [c.seq for c in clouds] == list(range(len(kept)))
+    assert all(c.n_points == 256 * c.n_profiles for c in clouds)
