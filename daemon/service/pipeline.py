@@ -21,7 +21,6 @@ import threading
 import time
 from collections import Counter, deque
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -31,7 +30,9 @@ from wristscan.calib import align
 from wristscan.daemon.cloud import wsc1
 from wristscan.daemon.service.instruments import STEPS, LatencyWindow, StepCpu
 from wristscan.daemon.service.overload import Shedder, spread_rows, take_rows
+from wristscan.daemon.service.publisher import Outgoing, Publisher
 from wristscan.daemon.service.readers import Reader, name_os_thread
+from wristscan.daemon.service.settings import AlignmentSetup, PipelineSettings
 from wristscan.daemon.sync.batch import PairedBatch
 from wristscan.daemon.sync.pairing import Pairer
 from wristscan.drivers.base import Device, DriverError, ProfileSensor
@@ -48,54 +49,6 @@ log = logging.getLogger(__name__)
 
 _SLOW_TICK_NS = 50_000_000
 """A tick longer than this (five batch periods at the default) is counted and logged."""
-
-
-@dataclass(frozen=True)
-class AlignmentSetup:
-    """The calibration in force, as the worker uses it (swapped atomically as one object)."""
-
-    sensor2flange: NDArray[np.float64]
-    frame: str = "base"
-    base2table: NDArray[np.float64] | None = None
-    encoder_offset_rad: float = 0.0
-    calibrated: bool = True
-    description: dict[str, Any] | None = None
-
-
-@dataclass(frozen=True)
-class PipelineSettings:
-    batch_s: float = 0.010
-    profile_queue: int = 4096
-    state_queue: int = 65536
-    status_period_s: float = 1.0
-    state_wait_s: float = 0.005
-    """At a tick, wait up to this long for the robot (or table) states that profiles already
-    received still need (the state after their exposure is a few ms away), and publish them in
-    this tick's batch instead of one whole period later."""
-    read_ahead_s: float = 0.002
-    """Between ticks the worker reads, decodes and queues what has arrived every this long
-    (0: only at ticks), so that a tick has only the newest profiles left to decode: the same
-    CPU per profile, off the path from tick to publication."""
-    publish_intensity: bool = False
-    publish_profile_index: bool = False
-    inline_sensor: bool | None = None
-    """Read the sensor in the worker at each tick instead of in a reader thread (None: when the
-    driver's records are ``stamped_on_receipt``, e.g. by the kernel; then reading late loses no
-    timing, the socket buffer holds the tick's datagrams, and a thread woken per profile,
-    competing for the GIL with the worker, is saved)."""
-    shed_overload: bool = True
-    """Shed whole profiles, evenly spread and counted (``overload``), when they arrive faster
-    than the worker can process them (``daemon/service/overload.py``), instead of falling
-    behind without bound."""
-    utilisation: float = 0.9
-    """The share of the worker's time admissions may fill under overload."""
-    gil_switch_interval_s: float | None = 0.0005
-    """Python's thread switch interval while the pipeline runs, for sensor drivers that stamp
-    a record when their thread gets the GIL back after the receive call: with Python's default
-    5 ms a busy worker delays those stamps by up to 5 ms, which the sensor clock fit sees as
-    transport jitter (its jump tolerance is 2 ms). Drivers whose stamps come from the kernel
-    (``kernel_stamps``, the UDP drivers on Linux) do not need it, and the interval is left
-    alone for them: every forced switch costs the worker a wake-up. None: always leave it."""
 
 
 class Pipeline:
@@ -139,6 +92,11 @@ class Pipeline:
         self.published_profiles = 0
         self.published_points = 0
         self.published_batches = 0
+        self._publishing = 0
+        """Profiles handed to the publishing thread whose put has not returned yet."""
+        self._payloads: deque[bytearray] = deque(maxlen=s.batch_queue + 2)
+        """Recent WSC1 payloads, written over again once nobody holds them."""
+        self._publisher = Publisher(self._put, self._published, self._fail, s.batch_queue)
         self.robot_states_dropped = 0
         self._lock = threading.Lock()
         # Held by the worker while it drains, pairs and publishes one tick, and by stats(): the
@@ -165,12 +123,13 @@ class Pipeline:
         self.state_waited_s = 0.0
         """Wall time the worker spent at ticks waiting for the states of received profiles."""
         self._cpu = {step: StepCpu() for step in STEPS}
-        """The worker's CPU time by step: reading the sensor, pairing, aligning, publishing."""
+        """The worker's CPU time by step: reading the sensor, pairing, aligning; publishing is
+        the publishing thread's."""
+        self._cpu["publish"] = self._publisher.cpu
         self.tick_ms_max = 0.0
         self._gc_t0 = 0
         self._tick_ns = 0
         self._tick_read_ns = 0
-        self._payload: bytearray | None = None
         self._tick_wait_ns = 0
 
     def _make_readers(self) -> list[Reader[Any]]:
@@ -239,12 +198,13 @@ class Pipeline:
     def _stats(self, latency: bool) -> dict[str, Any]:
         with self._tick_lock:
             p = self.pairer.stats()
-            published = self.published_profiles
-            points, batches = self.published_points, self.published_batches
             queued = len(self._profiles) + self._blocks_n
             overload = self.shedder.status()
             with self._lock:
                 dropped = dict(self.dropped)
+                published = self.published_profiles
+                points, batches = self.published_points, self.published_batches
+                publishing = self._publishing
         for reason, n in dict(p["dropped"]).items():  # type: ignore[call-overload]
             dropped[reason] = dropped.get(reason, 0) + int(n)
         # Shed before the pairer (queue_full, overload): received by the pipeline all the same.
@@ -254,7 +214,8 @@ class Pipeline:
             + dropped.get("queue_full", 0)
             + dropped.get("overload", 0)
         )
-        pending = int(p["pending"]) + queued  # type: ignore[call-overload]
+        # Paired (in the pairer's received), handed to the publishing thread, not put yet.
+        pending = int(p["pending"]) + queued + publishing  # type: ignore[call-overload]
         return {
             "received": received,
             "published": published,
@@ -330,6 +291,8 @@ class Pipeline:
         self._started = True
         for r in self._readers:
             r.start()
+        if self._publish is not None:
+            self._publisher.start()
         self._worker.start()
 
     def stop(self, drain: bool = True, timeout_s: float = 5.0) -> None:
@@ -344,6 +307,7 @@ class Pipeline:
         self._drain_on_stop = drain
         self._stop.set()
         self._worker.join(timeout_s)
+        self._publisher.stop(timeout_s)
         self._started = False
         if self._on_gc in gc.callbacks:
             gc.callbacks.remove(self._on_gc)
@@ -455,8 +419,9 @@ class Pipeline:
         if self._on_batch is not None:
             self._on_batch(batch)
         if self._publish is None:
-            self.published_batches += 1
-            self.published_profiles += batch.n_profiles
+            with self._lock:
+                self.published_batches += 1
+                self.published_profiles += batch.n_profiles
             return
         setup = self._setup
         frame = setup.frame
@@ -474,32 +439,59 @@ class Pipeline:
             # Every point in float32 straight into the WSC1 payload, segment by segment (the
             # profiles' rows as they arrived: nothing concatenated first).
             groups = [(g.y, g.z, g.valid, g.intensity) for g in batch.segments()]
-            # The last payload again, unless someone kept it (zenoh copied it when it was put):
-            # zeroing and mapping a new one cost ~2 us per profile.
-            last = self._payload  # held here, by self and by getrefcount's argument: 3
-            reuse = last if last is not None and sys.getrefcount(last) <= 3 else None
             cloud = wsc1.aligned_frame_of(
                 groups,
                 poses,
                 intensity=s.publish_intensity and all(g[3] is not None for g in groups),
                 profile_index=s.publish_profile_index,
-                reuse=reuse,
+                reuse=self._free_payload(),
             )
-            self._payload = cloud.buffer
-        t_first = int(batch.exposure_ns.min()) + self._utc_offset_ns
-        t_last = int(batch.exposure_ns.max()) + self._utc_offset_ns
-        with self._cpu["publish"]:
-            seq = self._publish(cloud, t_first, t_last, batch.n_profiles, frame, None, None)
-            if self._publish_pose is not None:
-                t_ns = batch.exposure_ns.astype(np.int64) + self._utc_offset_ns
-                self._publish_pose(seq, frame, t_ns, batch.flange2base, poses)
-        if batch.arrival_ns is not None:
-            self.latency.add(
-                batch.exposure_ns, batch.arrival_ns, self._tick_ns, time.monotonic_ns()
-            )
-        self.published_batches += 1
-        self.published_profiles += batch.n_profiles
-        self.published_points += cloud.n_points
+            if not any(b is cloud.buffer for b in self._payloads):
+                self._payloads.append(cloud.buffer)
+        item = Outgoing(
+            cloud,
+            int(batch.exposure_ns.min()) + self._utc_offset_ns,
+            int(batch.exposure_ns.max()) + self._utc_offset_ns,
+            batch.n_profiles,
+            cloud.n_points,
+            frame,
+            batch.exposure_ns,
+            batch.flange2base,
+            poses,
+            batch.arrival_ns,
+            self._tick_ns,
+        )
+        with self._lock:
+            self._publishing += batch.n_profiles
+        self._publisher.submit(item)
+
+    def _free_payload(self) -> bytearray | None:
+        """A recent payload nobody holds any more (zenoh copied it when it was put): zeroing
+        and mapping a new one cost ~2 us per profile. None: all in use."""
+        for buf in self._payloads:
+            if sys.getrefcount(buf) <= 3:  # the deque, this loop and getrefcount's argument
+                return buf
+        return None
+
+    def _put(self, item: Outgoing) -> None:
+        """The publishing thread's work: the cloud, then its profiles' poses."""
+        assert self._publish is not None
+        seq = self._publish(
+            item.cloud, item.t_first_ns, item.t_last_ns, item.n_profiles, item.frame, None, None
+        )
+        if self._publish_pose is not None:
+            t_ns = item.exposure_ns.astype(np.int64) + self._utc_offset_ns
+            self._publish_pose(seq, item.frame, t_ns, item.flange2base, item.sensor2frame)
+
+    def _published(self, item: Outgoing) -> None:
+        if item.arrival_ns is not None:
+            self.latency.add(item.exposure_ns, item.arrival_ns, item.tick_ns, time.monotonic_ns())
+        item.cloud = None  # the payload is free for the next batch
+        with self._lock:
+            self._publishing -= item.n_profiles
+            self.published_batches += 1
+            self.published_profiles += item.n_profiles
+            self.published_points += item.n_points
 
     def _wait_for_tick(self, tick: float) -> bool:
         """Sleep until the monotonic time ``tick``, reading ahead meanwhile; True to stop."""

@@ -202,6 +202,7 @@ class Service:
             settings=PipelineSettings(
                 batch_s=pl.batch_s,
                 profile_queue=pl.profile_queue,
+                batch_queue=pl.batch_queue,
                 status_period_s=z.status_period_s,
                 publish_intensity=pl.publish_intensity,
                 publish_profile_index=pl.publish_profile_index,
