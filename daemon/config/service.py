@@ -98,8 +98,8 @@ class PipelineConfig(StrictModel):
     """When profiles arrive faster than the daemon can process them, shed whole profiles evenly
     (counted as ``overload``) and keep publishing near capacity, instead of falling behind
     (docs/pipeline.md, "Overload")."""
-    utilisation: Annotated[Float, Field(gt=0.1, le=1.0)] = 0.9
-    """The share of the worker's time admissions may fill under overload."""
+    overload_lag_s: Annotated[Float, Field(gt=0.0, le=10.0)] = 0.1
+    """Shedding starts when the oldest profile waiting for admission is older than this."""
 
 
 class ZenohConfig(StrictModel):

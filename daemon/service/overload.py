@@ -7,19 +7,17 @@ worker reads and decodes everything (cheap, and it keeps the socket drained), th
 what it can process and sheds the rest as whole profiles, spread evenly over the tick's
 profiles (the cloud stays uniformly sampled along the path), counted as ``overload``.
 
-The admissible rate comes from the worker's own measured wall time per profile, in two parts:
-reading and decoding (``c_read``, paid for every profile that arrives) and the rest (``c_keep``:
-pairing, alignment, encoding, zenoh put, paid only for admitted ones). With ``u`` the share of
-the worker's time to fill (``utilisation``) and ``rate_in`` the arrival rate, the worker keeps up
-while ``rate_in * c_read + rate_keep * c_keep <= u``, so
-
-    rate_keep = (u - rate_in * c_read) / c_keep.
-
-A token bucket at that rate, holding ``burst_s`` worth of tokens, admits the profiles: below
-capacity it never runs dry (a backlog after a pause of up to ``burst_s`` times the headroom goes
-through whole); above it the worker publishes at ``u`` of its capacity; as soon as the rate drops
-the bucket refills and nothing is shed. Wall time, not CPU time: a worker that waits for the GIL
-or a CPU processes fewer profiles, and that is the capacity that matters.
+How much it can process is measured, not modelled (its cost per profile depends on its batch
+sizes, on the CPU it gets, on the GIL, on a publisher that keeps it waiting): a tick processes
+what it admits, so while the worker is behind and still takes everything, the profiles it
+admits per second are its capacity. The trigger is the **lag**, the age of the oldest profile at
+its admission: keeping up, it is one tick (10-12 ms); behind, it grows. When it exceeds
+``max_lag_s`` (100 ms) at two steps running (a single late tick is a pause whose backlog goes
+through whole), the admission rate is set to ``headroom`` times that capacity, and lowered by
+the same factor at each step where the lag still rises; once the lag is below half of
+``max_lag_s`` the rate is raised by ``increase`` every ``step_s`` (behind, the worker works in
+bigger, cheaper batches than while catching up), and shedding stops when the rate is far above
+the arrivals. A token bucket spreads the admitted rate over the ticks.
 """
 
 from __future__ import annotations
@@ -46,94 +44,101 @@ def spread_rows(n_in: int, n_keep: int) -> NDArray[np.intp]:
 
 
 class Shedder:
-    """Token-bucket admission at the measured capacity (see the module docstring).
+    """Lag-triggered admission at the measured throughput (see the module docstring). Times in
+    ns, rates in profiles/s.
 
-    Feed it the worker's measured costs (:meth:`note_read`, :meth:`note_kept`) and ask
-    :meth:`admit` how many of the profiles that arrived may go on. Times in ns.
+    Call :meth:`admit` once per tick with the number of profiles that arrived and the receipt
+    time of the oldest of them; it returns how many go on (``spread_rows`` picks which).
     """
 
     def __init__(
         self,
-        utilisation: float = 0.9,
-        burst_s: float = 0.25,
-        smoothing: float = 0.1,
-        min_profiles: int = 10,
+        max_lag_s: float = 0.1,
+        step_s: float = 0.1,
+        headroom: float = 0.95,
+        increase: float = 1.2,
+        window_s: float = 1.0,
     ) -> None:
-        if not (0.0 < utilisation <= 1.0 and burst_s > 0.0 and 0.0 < smoothing <= 1.0):
-            raise ValueError("Shedder: 0 < utilisation <= 1, burst_s > 0, 0 < smoothing <= 1")
-        self.utilisation = utilisation
-        self.burst_s = burst_s
-        self.smoothing = smoothing
-        self.min_profiles = min_profiles
-        self.c_read_ns: float | None = None
-        """Wall ns per profile read and decoded (smoothed)."""
-        self.c_keep_ns: float | None = None
-        """Wall ns per admitted profile: pairing, alignment, encoding, publishing (smoothed)."""
+        if not (max_lag_s > 0 and step_s > 0 and 0 < headroom <= 1 < increase and window_s > 0):
+            raise ValueError(
+                "Shedder: max_lag_s, step_s and window_s > 0, 0 < headroom <= 1 < increase"
+            )
+        self.max_lag_s = max_lag_s
+        self.step_s = step_s
+        self.headroom = headroom
+        self.increase = increase
+        self.window_s = window_s
+        self.limit = math.inf
+        """The admission rate in force (inf: everything goes on)."""
         self.rate_in = 0.0
-        """Arrival rate (profiles/s, smoothed)."""
-        self._tokens = math.inf
-        self._last_ns: int | None = None
+        """Arrival rate, smoothed over ``window_s``."""
+        self.capacity = math.inf
+        """What the worker processed per second, measured while it was behind taking all."""
+        self.lag_s = 0.0
         self.shed = 0
         self.shedding = False
         """Whether the latest admission shed profiles."""
+        self._tokens = 0.0
+        self._last_ns: int | None = None
+        self._step_ns = 0
+        self._kept = 0
+        self._lag_last = 0.0
+        self._behind = 0
 
-    def _smooth(self, old: float | None, new: float) -> float:
-        return new if old is None else old + self.smoothing * (new - old)
-
-    def note_read(self, n_profiles: int, wall_ns: int) -> None:
-        """``n_profiles`` read and decoded in ``wall_ns``."""
-        if n_profiles >= self.min_profiles:
-            self.c_read_ns = self._smooth(self.c_read_ns, wall_ns / n_profiles)
-
-    def note_kept(self, n_profiles: int, wall_ns: int) -> None:
-        """``n_profiles`` admitted ones paired, aligned and published in ``wall_ns``."""
-        if n_profiles >= self.min_profiles:
-            self.c_keep_ns = self._smooth(self.c_keep_ns, wall_ns / n_profiles)
-
-    @property
-    def capacity_per_s(self) -> float:
-        """Profiles per second the worker can admit now (inf before it has measured)."""
-        if self.c_keep_ns is None:
-            return math.inf
-        spare = self.utilisation - self.rate_in * (self.c_read_ns or 0.0) * 1e-9
-        # Never below a tenth of the worker's time: something always gets through.
-        spare = max(spare, 0.1 * self.utilisation)
-        return spare / (self.c_keep_ns * 1e-9)
-
-    def admit(self, n_in: int, now_ns: int) -> int:
-        """How many of the ``n_in`` profiles that arrived since the last call go on."""
+    def admit(self, n_in: int, now_ns: int, oldest_ns: int | None = None) -> int:
+        """How many of the ``n_in`` profiles that arrived since the last call go on;
+        ``oldest_ns`` is the receipt (host monotonic) of the oldest of them."""
         last, self._last_ns = self._last_ns, now_ns
         dt = 0.0 if last is None else max(0.0, (now_ns - last) * 1e-9)
+        self.lag_s = 0.0 if oldest_ns is None or not n_in else max(0.0, (now_ns - oldest_ns) * 1e-9)
+        if now_ns - self._step_ns >= self.step_s * 1e9:
+            self._step(now_ns)
+        if math.isinf(self.limit):
+            keep = n_in
+        else:
+            self._tokens = min(self.limit * self.step_s, self._tokens + self.limit * dt)
+            keep = min(n_in, int(self._tokens))
+            self._tokens -= keep
         if dt > 0.0:
-            # Smoothed over ~1/smoothing calls, weighted by their duration.
-            w = min(1.0, self.smoothing * dt / 0.01)
-            self.rate_in += w * (n_in / dt - self.rate_in)
-        cap = self.capacity_per_s
-        if math.isinf(cap):
-            self.shedding = False
-            return n_in
-        full = max(cap * self.burst_s, float(self.min_profiles))
-        self._tokens = min(full, self._tokens + cap * dt)
-        keep = min(n_in, int(self._tokens))
-        self._tokens -= keep
+            self.rate_in += min(1.0, dt / self.window_s) * (n_in / dt - self.rate_in)
+        self._kept += keep
         self.shedding = keep < n_in
         self.shed += n_in - keep
         return keep
 
+    def _step(self, now_ns: int) -> None:
+        """Every ``step_s``: set the admission rate from the lag and the throughput."""
+        wall_s = (now_ns - self._step_ns) * 1e-9
+        # A tick processes what it admits: profiles admitted per second are its throughput.
+        throughput = self._kept / wall_s if self._step_ns and wall_s > 0 else 0.0
+        rising = self.lag_s > self._lag_last
+        self._step_ns, self._kept, self._lag_last = now_ns, 0, self.lag_s
+        # Behind at two steps running: one late tick is a pause (the worker stopped, starved
+        # for a moment), whose backlog it works off in one big batch.
+        self._behind = self._behind + 1 if self.lag_s > self.max_lag_s else 0
+        if self._behind >= 2:
+            if math.isinf(self.limit):  # taking everything: its throughput is its capacity
+                self.capacity = max(1.0, throughput)
+                self.limit = self.headroom * self.capacity
+                self._tokens = min(self._tokens, self.limit * self.step_s)
+            elif rising:  # still falling behind at that rate
+                self.limit = max(1.0, self.limit * self.headroom)
+        elif math.isfinite(self.limit) and self.lag_s < 0.5 * self.max_lag_s:
+            # Caught up: probe upwards (behind, the worker works in bigger, cheaper batches than
+            # while catching up), and stop shedding once far above the arrivals.
+            self.limit *= self.increase
+            if self.limit > 1.5 * self.rate_in:
+                self.limit = math.inf
+
     def status(self) -> dict[str, float | bool | int | None]:
-        """For ``stats``: the measured costs (us), arrival rate and capacity (profiles/s)."""
-        cap = self.capacity_per_s
+        """For ``stats``: shedding, the lag (s), the rates (profiles/s)."""
         return {
             "shedding": self.shedding,
             "shed": self.shed,
-            "read_us_per_profile": None
-            if self.c_read_ns is None
-            else round(self.c_read_ns / 1e3, 2),
-            "keep_us_per_profile": None
-            if self.c_keep_ns is None
-            else round(self.c_keep_ns / 1e3, 2),
+            "lag_s": round(self.lag_s, 4),
+            "limit_per_s": None if math.isinf(self.limit) else round(self.limit, 1),
+            "capacity_per_s": None if math.isinf(self.capacity) else round(self.capacity, 1),
             "rate_in_per_s": round(self.rate_in, 1),
-            "capacity_per_s": None if math.isinf(cap) else round(cap, 1),
         }
 
 

@@ -85,7 +85,7 @@ class Pipeline:
         self._blocks: list[ProfileBlock] = []
         """Blocks read inline since the last tick's admission, and their profile count."""
         self._blocks_n = 0
-        self.shedder = Shedder(utilisation=s.utilisation)
+        self.shedder = Shedder(max_lag_s=s.overload_lag_s)
         self._robot_q: deque[RobotState] = deque()
         self._table_q: deque[TableState] = deque()
         self.dropped: Counter[str] = Counter()
@@ -129,8 +129,6 @@ class Pipeline:
         self.tick_ms_max = 0.0
         self._gc_t0 = 0
         self._tick_ns = 0
-        self._tick_read_ns = 0
-        self._tick_wait_ns = 0
 
     def _make_readers(self) -> list[Reader[Any]]:
         """A reader thread per device: the robot, the table if any, and the sensor unless it is
@@ -322,7 +320,6 @@ class Pipeline:
             return
         limit = self.settings.profile_queue
         n0 = self._blocks_n
-        t0 = time.monotonic_ns()
         with self._cpu["read"]:
             # Bounded: a flood cannot keep the worker here forever (the rest waits in the
             # socket buffer for the next step).
@@ -345,7 +342,6 @@ class Pipeline:
                 self._blocks_n += n
                 if n < limit:
                     break
-        self.shedder.note_read(self._blocks_n - n0, time.monotonic_ns() - t0)
 
     def _admit(self) -> None:
         """This tick's profiles into the pairer, shedding what the worker cannot process."""
@@ -361,7 +357,8 @@ class Pipeline:
             return
         keep = n_in
         if self.settings.shed_overload:
-            keep = self.shedder.admit(n_in, time.monotonic_ns())
+            oldest = min(int(b.host_time_ns[0]) for b in blocks)
+            keep = self.shedder.admit(n_in, time.monotonic_ns(), oldest)
         if keep < n_in:
             with self._lock:
                 self.dropped["overload"] += n_in - keep
@@ -390,9 +387,7 @@ class Pipeline:
     def _pair(self, stopping: bool) -> list[PairedBatch]:
         """This tick's batches: pair what arrived, then wait up to ``state_wait_s`` for the
         states that received profiles still need (not while stopping)."""
-        r0 = time.monotonic_ns()
         self._read_sensor_inline()
-        self._tick_read_ns = time.monotonic_ns() - r0
         self._drain()
         batches = self._poll()
         t0 = time.monotonic()
@@ -412,7 +407,6 @@ class Pipeline:
             batches.extend(self._poll())  # what the states that came in time do cover
         waited = time.monotonic() - t0
         self.state_waited_s += waited
-        self._tick_wait_ns = int(waited * 1e9)
         return self.pairer.merge(batches) if len(batches) > 1 else batches
 
     def _emit(self, batch: PairedBatch) -> None:
@@ -548,11 +542,6 @@ class Pipeline:
                         self._emit(b)
                 self._last_progress_ns = t2 = time.monotonic_ns()
                 self._note_tick(t0, t1, t2, time.thread_time_ns() - cpu0, batches)
-                # What the tick's profiles cost beyond reading them: the admission rate.
-                self.shedder.note_kept(
-                    sum(b.n_profiles for b in batches),
-                    t2 - t0 - self._tick_read_ns - self._tick_wait_ns,
-                )
                 if self._publish_status is not None and time.monotonic() >= next_status:
                     next_status += self.settings.status_period_s
                     self._publish_status(self.status())

@@ -207,7 +207,7 @@ class Service:
                 publish_intensity=pl.publish_intensity,
                 publish_profile_index=pl.publish_profile_index,
                 shed_overload=pl.shed_overload,
-                utilisation=pl.utilisation,
+                overload_lag_s=pl.overload_lag_s,
             ),
             publish_status=self._publish_status,
             publish_pose=face.publish_pose,

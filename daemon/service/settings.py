@@ -52,8 +52,9 @@ class PipelineSettings:
     """Shed whole profiles, evenly spread and counted (``overload``), when they arrive faster
     than the worker can process them (``daemon/service/overload.py``), instead of falling
     behind without bound."""
-    utilisation: float = 0.9
-    """The share of the worker's time admissions may fill under overload."""
+    overload_lag_s: float = 0.1
+    """Shed only while the oldest profile at admission is older than this: the worker is
+    behind (keeping up, the lag is one tick)."""
     gil_switch_interval_s: float | None = 0.0005
     """Python's thread switch interval while the pipeline runs, for sensor drivers that stamp
     a record when their thread gets the GIL back after the receive call: with Python's default
