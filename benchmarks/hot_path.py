@@ -28,7 +28,9 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from _report import Figure, report
+from support import StandInRobot
 
 MS = 1_000_000
 WARMUP_S = 0.5
@@ -77,22 +79,8 @@ def measure_hot_path(
     from wristscan.calib import se3
     from wristscan.daemon.service.pipeline import AlignmentSetup, Pipeline, PipelineSettings
     from wristscan.daemon.sync.pairing import Pairer, PairerConfig
-    from wristscan.drivers.base import Robot
     from wristscan.drivers.records import RobotState
     from wristscan.drivers.sensor_lpf1 import Lpf1UdpSensor
-
-    class _Idle(Robot):  # the states are put in the worker's queue directly
-        def _open(self) -> None: ...
-        def _close(self) -> None: ...
-        def _read_internal(self, timeout: float | None) -> None:
-            return None
-
-        def tcp_offset(self) -> Any:
-            return np.zeros(6)
-
-        def move_l(self, *a: Any, **k: Any) -> None: ...
-        def move_j(self, *a: Any, **k: Any) -> None: ...
-        def stop(self) -> None: ...
 
     n_prof = int(rate_hz * seconds)
     t0 = time.monotonic_ns()
@@ -109,7 +97,7 @@ def measure_hot_path(
     tx.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4 << 20)
     pipe = Pipeline(
         sensor,
-        _Idle(),
+        StandInRobot(),  # the states go into the worker's queue directly
         Pairer(PairerConfig(sensor_latency_ns=2 * MS)),
         AlignmentSetup(s2f),
         _publisher(),

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import contextlib
 import math
+import socket
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -13,7 +15,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wristscan.calib import kinematics as kin
-from wristscan.drivers.records import Profile
+from wristscan.drivers.base import Robot
+from wristscan.drivers.records import Profile, RobotState
 
 # KinematicsInfo of a real UR10e as printed in Universal_Robots_ROS2_Driver
 # ur_calibration/doc/algorithm.rst (complete calibrated DH values, not deltas).
@@ -486,3 +489,47 @@ def late_sender_arrivals(
     sent = np.maximum.accumulate(t_stamp + np.rint(lag).astype(np.int64))
     host = sent + np.rint(50_000 + rng.gamma(2.0, 50_000.0, n)).astype(np.int64)
     return dev, np.maximum.accumulate(host), t_stamp
+
+
+def wait_for(cond: Any, what: str, timeout: float = 30.0) -> None:
+    """Poll ``cond()`` every 50 ms until it is true; fail with ``what`` after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while not cond():
+        assert time.monotonic() < deadline, what
+        time.sleep(0.05)
+
+
+class StandInRobot(Robot):
+    """A controller stand-in for pipeline tests: its link opens and closes, it cannot move, and
+    it sends no state unless a subclass's ``_read_internal`` makes one (the arm still)."""
+
+    def _open(self) -> None:
+        pass
+
+    def _close(self) -> None:
+        pass
+
+    def _read_internal(self, timeout: float | None) -> RobotState | None:
+        time.sleep(min(timeout if timeout is not None else 0.05, 0.05))
+        return None
+
+    def tcp_offset(self) -> NDArray[np.float64]:
+        return np.zeros(6)
+
+    def move_l(self, pose: Any, speed: float, accel: float, asynchronous: bool = False) -> None:
+        raise NotImplementedError
+
+    def move_j(self, q: Any, speed: float, accel: float, asynchronous: bool = False) -> None:
+        raise NotImplementedError
+
+    def stop(self) -> None:
+        pass
+
+
+def udp_receiver(rcvbuf: int = 4 << 20, timeout_s: float = 2.0) -> socket.socket:
+    """A UDP socket bound to a free port on 127.0.0.1, with a receive buffer and a timeout."""
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+    rx.bind(("127.0.0.1", 0))
+    rx.settimeout(timeout_s)
+    return rx

@@ -12,7 +12,6 @@ from __future__ import annotations
 import gc
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +22,7 @@ import zenoh
 import zenoh.ext
 from rosbags.typesys import Stores, get_typestore
 from scipy.spatial.transform import Rotation
-from support import free_tcp_port, own_loopback_host
+from support import wait_for
 
 from wristscan.calib import kinematics, se3
 from wristscan.daemon.cloud import ros2msg, wsc1, wsp1
@@ -129,19 +128,6 @@ def test_ros2_section() -> None:
         parse_config(_config_text() + '\n[ros2]\nmode = "dds"\n')
 
 
-@pytest.fixture
-def endpoint() -> Iterator[str]:
-    host = own_loopback_host()
-    yield f"tcp/{host}:{free_tcp_port(host)}"
-
-
-def _wait(cond: Any, what: str, timeout: float = 30.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not cond():
-        assert time.monotonic() < deadline, what
-        time.sleep(0.05)
-
-
 def test_rmw_zenoh_publication_reaches_a_plain_subscriber(endpoint: str) -> None:
     daemon_session = open_session(listen=[endpoint])
     peer = open_session(connect=[endpoint])
@@ -168,7 +154,7 @@ def test_rmw_zenoh_publication_reaches_a_plain_subscriber(endpoint: str) -> None
             tokens.update(str(r.ok.key_expr) for r in peer.liveliness().get("@ros2_lv/4/**"))
             return len(tokens) >= 3
 
-        _wait(graph, f"liveliness tokens never seen: {tokens}")
+        wait_for(graph, f"liveliness tokens never seen: {tokens}")
         assert tokens == {
             f"@ros2_lv/4/{zid}/0/0/NN/%/%/wristscan",
             f"@ros2_lv/4/{zid}/0/1/MP/%/%/wristscan/%wristscan%t%cloud/{PC2_DDS}/{PC2_HASH}"
@@ -190,7 +176,7 @@ def test_rmw_zenoh_publication_reaches_a_plain_subscriber(endpoint: str) -> None
                 time.sleep(0.2)
             return bool(got and wsc)
 
-        _wait(arrived, "PointCloud2 never arrived on the rmw_zenoh key")
+        wait_for(arrived, "PointCloud2 never arrived on the rmw_zenoh key")
         sample = got[0]
         assert str(sample.key_expr) == key
         msg = get_typestore(Stores.ROS2_JAZZY).deserialize_cdr(
@@ -226,7 +212,7 @@ def test_rmw_zenoh_publication_reaches_a_plain_subscriber(endpoint: str) -> None
         s2f = np.eye(4)
         s2f[:3, 3] = [0.01, -0.02, 0.15]
         ros.publish_tf_static(s2f, stamp_ns=5)
-        _wait(lambda: bool(tf), "/tf_static never arrived")
+        wait_for(lambda: bool(tf), "/tf_static never arrived")
         tfm = get_typestore(Stores.ROS2_JAZZY).deserialize_cdr(
             tf[0].payload.to_bytes(), "tf2_msgs/msg/TFMessage"
         )
@@ -242,13 +228,13 @@ def test_rmw_zenoh_publication_reaches_a_plain_subscriber(endpoint: str) -> None
             late.append,
             history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
         )
-        _wait(lambda: bool(late), "a late /tf_static subscriber got nothing")
+        wait_for(lambda: bool(late), "a late /tf_static subscriber got nothing")
         assert late[-1].payload.to_bytes() == tf[-1].payload.to_bytes()
         late_sub.undeclare()
         for s in subs:
             s.undeclare()
         ros.close()
-        _wait(
+        wait_for(
             lambda: not list(peer.liveliness().get("@ros2_lv/4/**")),
             "liveliness tokens outlived the publisher",
         )
@@ -277,7 +263,7 @@ def test_bridge_mode_key_is_the_topic(endpoint: str) -> None:
                 time.sleep(0.2)
             return bool(got)
 
-        _wait(arrived, "bridge-mode PointCloud2 never arrived")
+        wait_for(arrived, "bridge-mode PointCloud2 never arrived")
         assert got[0].attachment is None
         back = ros2msg.cdr_to_cloud(got[0].payload.to_bytes())
         np.testing.assert_array_equal(back.xyz, xyz)
@@ -369,7 +355,7 @@ def test_daemon_on_the_sim_cell_publishes_pointcloud2_and_tf_static(tmp_path: Pa
         def full() -> list[int]:
             return [t for t in set(ros) & set(wsc) if wsc[t].n_points > 0 and wsc[t].seq in poses]
 
-        _wait(lambda: bool(full()) and bool(tf), "no PointCloud2 with points / no tf_static")
+        wait_for(lambda: bool(full()) and bool(tf), "no PointCloud2 with points / no tf_static")
         stamp = min(full())
         back = ros2msg.cdr_to_cloud(ros[stamp])
         assert back.frame_id == "base"
@@ -409,7 +395,7 @@ def test_daemon_on_the_sim_cell_publishes_pointcloud2_and_tf_static(tmp_path: Pa
         write_calibration(tmp_path / "s2f.json", _calibration(moved, "second"))
         n = len(tf)
         assert svc.reload()
-        _wait(lambda: len(tf) > n, "/tf_static not published again after the reload")
+        wait_for(lambda: len(tf) > n, "/tf_static not published again after the reload")
         np.testing.assert_allclose(tf_matrix(tf[-1]), moved, atol=1e-12)
         for s in subs:
             s.undeclare()

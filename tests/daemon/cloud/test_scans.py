@@ -7,11 +7,9 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from support import free_tcp_port, own_loopback_host
 from typer.testing import CliRunner
 
 from wristscan.daemon.cli.app import app
@@ -29,12 +27,6 @@ def _archive(root: Path, *jobs: str) -> ScanArchive:
         (src / "report.json").write_text(json.dumps({"job": job}))
         arch.add(job, {"merged.ply": src / "merged.ply", "report.json": src / "report.json"})
     return arch
-
-
-@pytest.fixture
-def endpoint() -> Iterator[str]:
-    host = own_loopback_host()
-    yield f"tcp/{host}:{free_tcp_port(host)}"
 
 
 def test_archive_served_listed_fetched_and_announced(endpoint: str, tmp_path: Path) -> None:

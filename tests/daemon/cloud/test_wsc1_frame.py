@@ -5,14 +5,13 @@ real zenoh sessions on loopback, the PointCloud2 read back with rosbags."""
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 import pytest
 import zenoh
 from rosbags.typesys import Stores, get_typestore
-from support import free_tcp_port, own_loopback_host
+from support import wait_for
 
 from wristscan.calib import align, se3
 from wristscan.daemon.cloud import ros2msg, wsc1
@@ -92,19 +91,6 @@ def test_frame_refuses_bad_arguments() -> None:
     assert wsc1.decode(empty).n_points == 0
 
 
-@pytest.fixture
-def endpoint() -> Iterator[str]:
-    host = own_loopback_host()
-    yield f"tcp/{host}:{free_tcp_port(host)}"
-
-
-def _wait(cond: Any, what: str, timeout: float = 30.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not cond():
-        assert time.monotonic() < deadline, what
-        time.sleep(0.05)
-
-
 def _aligned_frame(
     rng: np.random.Generator,
 ) -> tuple[wsc1.Wsc1Frame, np.ndarray, np.ndarray, np.ndarray]:
@@ -150,7 +136,7 @@ def test_frame_through_zenoh_and_the_ros2_tee(endpoint: str) -> None:
                 time.sleep(0.2)
             return bool(wsc and pc2)
 
-        _wait(arrived, "the frame never arrived as WSC1 and PointCloud2")
+        wait_for(arrived, "the frame never arrived as WSC1 and PointCloud2")
         payload = wsc[-1].payload.to_bytes()
         cloud = wsc1.decode(payload)
         assert (cloud.t_first_ns, cloud.n_profiles, cloud.frame_id) == (t0, 6, "base")

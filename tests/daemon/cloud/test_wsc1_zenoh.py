@@ -6,13 +6,11 @@ from __future__ import annotations
 
 import struct
 import time
-from collections.abc import Iterator
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from support import free_tcp_port, own_loopback_host
 
 from wristscan.daemon.cloud import wsc1
 from wristscan.daemon.cloud.client import CloudClient
@@ -76,12 +74,6 @@ def test_encode_rejects_bad_shapes() -> None:
         wsc1.encode(
             np.zeros((1, 3)), seq=0, t_first_ns=0, t_last_ns=0, n_profiles=1, frame_id="x" * 17
         )
-
-
-@pytest.fixture
-def endpoint() -> Iterator[str]:
-    host = own_loopback_host()
-    yield f"tcp/{host}:{free_tcp_port(host)}"
 
 
 def test_publish_subscribe_query_and_liveliness(endpoint: str) -> None:

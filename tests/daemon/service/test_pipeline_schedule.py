@@ -14,39 +14,12 @@ import time
 from typing import Any
 
 import numpy as np
+from support import StandInRobot
 
 from wristscan.daemon.service.pipeline import AlignmentSetup, Pipeline, PipelineSettings
 from wristscan.daemon.sync.pairing import Pairer, PairerConfig
 from wristscan.drivers import lpf1
-from wristscan.drivers.base import Robot
-from wristscan.drivers.records import RobotState
 from wristscan.drivers.sensor_lpf1 import Lpf1UdpSensor
-
-
-class _SilentRobot(Robot):
-    """A controller that never sends a state (its link is up, the arm is off)."""
-
-    def _open(self) -> None:
-        pass
-
-    def _close(self) -> None:
-        pass
-
-    def _read_internal(self, timeout: float | None) -> RobotState | None:
-        time.sleep(min(timeout if timeout is not None else 0.05, 0.05))
-        return None
-
-    def tcp_offset(self) -> np.ndarray:
-        return np.zeros(6)
-
-    def move_l(self, pose: Any, speed: float, accel: float, asynchronous: bool = False) -> None:
-        raise NotImplementedError
-
-    def move_j(self, q: Any, speed: float, accel: float, asynchronous: bool = False) -> None:
-        raise NotImplementedError
-
-    def stop(self) -> None:
-        pass
 
 
 def _datagrams(n: int, n_points: int = 256) -> list[bytes]:
@@ -61,7 +34,7 @@ def _received_before_first_tick(read_ahead_s: float, expect: int) -> tuple[int, 
     ``expect`` 0, for the time read-ahead takes to read them (0.5 s, many of its 0.02 s
     steps); returns what was received, all well before the first tick (60 s)."""
     sensor = Lpf1UdpSensor(bind_host="127.0.0.1", port=0)
-    robot = _SilentRobot()
+    robot = StandInRobot()
     sensor.open()
     robot.open()
     assert sensor.stamped_on_receipt, "Linux stamps UDP receipt in the kernel"

@@ -3,10 +3,10 @@ profiles leave 5-50 ms late in bursts, in order, and the clock fit still locks o
 
 from __future__ import annotations
 
-import socket
 import time
 
 import numpy as np
+from support import udp_receiver
 
 from wristscan.daemon.sync.clockmap import ClockMapper
 from wristscan.drivers import lpf1, lpf1_reader
@@ -16,10 +16,7 @@ MS = 1_000_000
 
 
 def test_late_sender_sends_5_to_50_ms_late_in_bursts_and_the_clock_locks() -> None:
-    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    rx.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
-    rx.bind(("127.0.0.1", 0))
-    rx.settimeout(2.0)
+    rx = udp_receiver()
     cfg = SensorSimConfig(
         kind="lpf1-udp",
         rate_hz=1000,

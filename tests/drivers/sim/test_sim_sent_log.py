@@ -2,20 +2,17 @@
 
 from __future__ import annotations
 
-import socket
 import time
 
 import numpy as np
+from support import udp_receiver
 
 from wristscan.drivers import lpf1, lpf1_reader
 from wristscan.drivers.sim.sensors import SensorSimConfig, SimulatedSensor
 
 
 def test_sent_log_gives_the_true_exposure_of_every_profile_sent() -> None:
-    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    rx.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
-    rx.bind(("127.0.0.1", 0))
-    rx.settimeout(2.0)
+    rx = udp_receiver()
     cfg = SensorSimConfig(
         kind="lpf1-udp",
         rate_hz=500,
