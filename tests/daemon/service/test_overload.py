@@ -213,26 +213,26 @@ def test_the_pipeline_sheds_under_overload_and_recovers() -> None:
         published.append((time.monotonic(), n_profiles))
         return len(published) - 1
 
-    # 1 s to lock the clocks at 500 Hz, 3 s at 4 kHz (twice the capacity), 2 s at 500 Hz.
-    st, t_start = _run_pipeline(publish, [(500.0, 1.0), (4000.0, 3.0), (500.0, 2.0)])
+    # 0.8 s to lock the clocks at 500 Hz, 2.2 s at 4 kHz (twice the capacity), 1.4 s at 500 Hz.
+    st, t_start = _run_pipeline(publish, [(500.0, 0.8), (4000.0, 2.2), (500.0, 1.4)])
     times = np.array([t for t, _ in published]) - t_start
     counts = np.array([n for _, n in published])
     # In the second half of the overload the worker keeps publishing: at most its 2 kHz, and
     # at least half of it (0.95 of the throughput it showed is aimed at; reading what is shed
     # takes its share, more on a loaded machine). The benchmark measures the ratio against a
     # capacity measured apart (benchmarks/overload.py).
-    window = (times > 2.5) & (times <= 4.0)
-    rate = counts[window].sum() / 1.5
+    window = (times > 2.0) & (times <= 3.0)
+    rate = counts[window].sum() / 1.0
     assert 0.5 * 2000 <= rate <= 2000, rate
     assert st["dropped"].get("overload", 0) > 1000, st["dropped"]
     # Counters add up; the clock never restarted, and it is locked at the end.
     assert st["received"] == st["published"] + sum(st["dropped"].values()) + st["pending"]
     clocks = st["pairing"]["sensor_clocks"]
     assert all(c["locked"] and c["epoch"] == 0 for c in clocks.values()), clocks
-    # The rate dropped at 4 s: from 4.5 s on every profile is published again (what arrives
-    # after that is all published: 500 Hz for 1.5 s, none shed).
-    late = times > 4.6
-    assert counts[late].sum() >= 0.9 * 500 * (times[late].max() - 4.6), counts[late].sum()
+    # The rate dropped at 3 s: from 3.6 s on every profile is published again (what arrives
+    # after that is all published: 500 Hz, none shed).
+    late = times > 3.6
+    assert counts[late].sum() >= 0.9 * 500 * (times[late].max() - 3.6), counts[late].sum()
     assert st["overload"]["shedding"] is False
 
 
@@ -250,7 +250,7 @@ def test_a_payload_kept_by_the_publisher_is_never_written_over() -> None:
                                                      n_profiles=n_profiles))))  # fmt: skip
         return len(kept) - 1
 
-    _run_pipeline(publish, [(1000.0, 1.5)])
+    _run_pipeline(publish, [(1000.0, 1.0)])
     assert len(kept) > 20
     clouds = [wsc1.decode(b) for b in kept]
     assert [c.seq for c in clouds] == list(range(len(kept)))
