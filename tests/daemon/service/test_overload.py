@@ -223,7 +223,8 @@ def test_the_pipeline_sheds_under_overload_and_recovers() -> None:
     # capacity measured apart (benchmarks/overload.py).
     window = (times > 2.0) & (times <= 3.0)
     rate = counts[window].sum() / 1.0
-    assert 0.5 * 2000 <= rate <= 2000, rate
+    # (A batch counts whole when its put returns: up to ~0.2 s of profiles across an edge.)
+    assert 0.5 * 2000 <= rate <= 1.2 * 2000, rate
     assert st["dropped"].get("overload", 0) > 1000, st["dropped"]
     # Counters add up; the clock never restarted, and it is locked at the end.
     assert st["received"] == st["published"] + sum(st["dropped"].values()) + st["pending"]
