@@ -30,7 +30,7 @@ The faults and their seams (see docs/mutations.md):
 * ``encoder``: the table calibration's ``encoder_offset_rad`` in force off by 0.05 deg (same seam).
 * ``nearest``: the robot state taken at the nearest sample instead of interpolated. Seam:
   ``RobotStateBuffer.__init__`` in ``wristscan.daemon.sync.buffers`` gives each robot buffer a
-  ``locate`` whose fraction is rounded to 0 or 1.
+  ``locate`` and a ``_locate`` (what its interpolation calls) whose fraction is rounded to 0 or 1.
 * ``drift``: the sensor clock's drift ignored (the mapping's slope forced to 1, the offset still
   fitted). Seam: ``wristscan.daemon.sync.envelope.support_slope`` answers 0 while a sensor clock's
   ``ClockMapper._refit`` runs (``wristscan.daemon.sync.clockmap``); robot and table clocks are
@@ -189,14 +189,20 @@ def _patch_nearest(mod: Any, size: float) -> None:
     def init(self: Any, *args: Any, **kwargs: Any) -> None:
         original_init(self, *args, **kwargs)
         buf = self._buf
-        locate = buf.locate
+        locate, locate_all = buf.locate, buf._locate
 
         def nearest(t_ns: Any) -> Any:
             i, s, reason = locate(t_ns)
             _note_use("robot state at the nearest sample")
             return i, np.rint(s), reason
 
+        def nearest_all(t_ns: Any) -> Any:  # what interpolation uses (issue 21)
+            i, s, reason, all_ok = locate_all(t_ns)
+            _note_use("robot state at the nearest sample")
+            return i, np.rint(s), reason, all_ok
+
         buf.locate = nearest
+        buf._locate = nearest_all
 
     cls.__init__ = init
 
