@@ -17,12 +17,13 @@ The P sensor poses of a batch are composed once; points then pick their pose thr
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from wristscan.calib import se3, table
+from wristscan.calib import jit, se3, table
 from wristscan.calib.se3 import FloatArray
 
 __all__ = [
@@ -343,10 +344,45 @@ def align_rows(
         )
     if n_out == 0:
         return out
+    kern = jit.kernel("align_rows")
+    if kern is not None:
+        _rows_jit(kern, ya, za, m, poses, out, check_finite)
+        return out
     # inf * 0 in the products of invalid points is no error: they are dropped
     with np.errstate(invalid="ignore", over="ignore"):
         _rows_into(ya, za, m, poses, out, check_finite)
     return out
+
+
+_NO_MASK = np.ones((1, 1), np.bool_)
+
+
+def _rows_jit(
+    kern: Callable[..., int],
+    ya: FloatArray,
+    za: FloatArray,
+    m: NDArray[np.bool_] | None,
+    poses: NDArray[np.floating],
+    out: NDArray[np.float32],
+    check_finite: bool,
+) -> None:
+    """:func:`align_rows`' work in one compiled pass (:mod:`.jit`): the same float32 transform
+    per profile, the same points to float32 rounding (FMA may round once less)."""
+    A = np.ascontiguousarray(poses[:, :3, 1:4], dtype=np.float32)
+    # The grid copied (N values): a read-only shared grid would be a second compiled variant.
+    y2 = np.array(ya.reshape(1, -1) if ya.ndim == 1 else ya, np.float64, order="C")
+    z2 = za if za.flags.c_contiguous and za.flags.writeable else np.array(za, order="C")
+    mask = _NO_MASK if m is None else np.ascontiguousarray(m)
+    got = int(kern(y2, z2, mask, m is not None, A, out))
+    if got >= 0 or not check_finite:
+        return
+    if m is None:  # as the numpy path: the inputs name what is wrong
+        _check_finite(ya, "y")
+        _check_finite(za, "z")
+    raise ValueError(
+        f"valid points with non-finite coordinates (first at output row {-1 - got}); "
+        "mark them invalid"
+    )
 
 
 def _rows_into(

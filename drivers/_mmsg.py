@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import ctypes
 import errno
+import mmap
 import os
 import select
 import socket
@@ -126,7 +127,9 @@ class MmsgReceiver:
         if _recvmmsg is None:
             raise OSError("recvmmsg is not available here")
         self.rows = int(rows)
-        self.buf = bytearray(self.rows * ROW_BYTES)
+        # Anonymous memory: pages are only allocated where datagrams land (a few kB per row),
+        # not the rows' full 64 kB.
+        self.buf = mmap.mmap(-1, self.rows * ROW_BYTES)
         self._data = np.frombuffer(self.buf, np.uint8)  # pins the buffer (never resized)
         self._names = np.zeros((self.rows, _NAME_BYTES), np.uint8)
         self._ctrl = np.zeros(self.rows, _CMSG)

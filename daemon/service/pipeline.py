@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from wristscan.calib import align
+from wristscan.calib import align, jit
 from wristscan.daemon.cloud import wsc1
 from wristscan.daemon.service.instruments import STEPS, LatencyWindow, StepCpu
 from wristscan.daemon.service.overload import Shedder, spread_rows, take_rows
@@ -281,6 +281,10 @@ class Pipeline:
             )
 
     def start(self) -> None:
+        # The compiled alignment made ready now, not on the first batch (numba: ~0.3-0.6 s).
+        took = jit.warm()
+        if took:
+            log.debug("hot-path kernels warmed in %.2f s", took)
         gc.callbacks.append(self._on_gc)
         interval = self.settings.gil_switch_interval_s
         if interval is not None and not self._sensor_stamped:

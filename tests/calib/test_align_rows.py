@@ -1,12 +1,21 @@
 """calib.align.align_rows: the hot path's float32 alignment of whole profiles against the float64
-``align`` (itself checked against a per-profile loop in test_align.py)."""
+``align`` (itself checked against a per-profile loop in test_align.py), compiled and in numpy."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from wristscan.calib import align, se3
+from wristscan.calib import align, jit, se3
+
+
+@pytest.fixture(autouse=True, params=["compiled", "numpy"])
+def backend(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Every test on both paths: the compiled kernel (numba, in the test install) and numpy."""
+    monkeypatch.setattr(jit, "enabled", request.param == "compiled")
+    if request.param == "compiled":
+        assert jit.available(), "numba (extra 'fast') belongs to the test install"
+    return str(request.param)
 
 
 def poses_near_base(rng: np.random.Generator, p: int) -> np.ndarray:
@@ -102,3 +111,19 @@ def test_bad_input_is_refused() -> None:
         align.align_rows(np.array([[0.1, np.inf, 0.2], [0.0, 0.1, 0.2]]), z, None, poses)
     with pytest.raises(ValueError, match="non-finite y in the lateral grid"):
         align.align_rows(np.array([0.0, np.nan, 0.2]), z, None, poses)
+
+
+def test_compiled_and_numpy_agree(monkeypatch: pytest.MonkeyPatch, backend: str) -> None:
+    """The two paths give the same points to float32 rounding (FMA may round once less)."""
+    rng = np.random.default_rng(5)
+    p, n = 9, 300
+    poses = poses_near_base(rng, p)
+    y, z = np.linspace(-0.05, 0.05, n), rng.uniform(0.05, 0.4, (p, n))
+    valid = rng.uniform(size=(p, n)) > 0.1
+    monkeypatch.setattr(jit, "enabled", True)
+    compiled = align.align_rows(y, z, valid, poses)
+    monkeypatch.setattr(jit, "enabled", False)
+    plain = align.align_rows(y, z, valid, poses)
+    assert compiled.shape == plain.shape
+    # one float32 ulp at 2 m is 0.24 um
+    assert np.abs(compiled - plain).max() <= 2.5e-7
