@@ -85,6 +85,8 @@ class Pipeline:
         self._blocks: list[ProfileBlock] = []
         """Blocks read inline since the last tick's admission, and their profile count."""
         self._blocks_n = 0
+        self._rate_in = 0.0
+        """Profiles per second read over the last ticks (sets the read-ahead pace)."""
         self.shedder = Shedder(max_lag_s=s.overload_lag_s)
         self._robot_q: deque[RobotState] = deque()
         self._table_q: deque[TableState] = deque()
@@ -351,6 +353,8 @@ class Pipeline:
         """This tick's profiles into the pairer, shedding what the worker cannot process."""
         blocks, self._blocks = self._blocks, []
         n_in, self._blocks_n = self._blocks_n, 0
+        # The arrival rate (profiles/s) over the last ticks, for the read-ahead's pace.
+        self._rate_in += 0.3 * (n_in / self.settings.batch_s - self._rate_in)
         records = self._profiles
         if records:
             taken = [records.popleft() for _ in range(len(records))]
@@ -494,6 +498,8 @@ class Pipeline:
     def _wait_for_tick(self, tick: float) -> bool:
         """Sleep until the monotonic time ``tick``, reading ahead meanwhile; True to stop."""
         step = self.settings.read_ahead_s
+        if step > 0 and self._rate_in > 0:
+            step = max(step, self.settings.read_ahead_profiles / self._rate_in)
         while True:
             now = time.monotonic()
             if step <= 0 or tick - now <= step:

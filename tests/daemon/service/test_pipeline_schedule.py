@@ -75,3 +75,51 @@ def test_the_worker_reads_ahead_between_ticks() -> None:
 def test_without_read_ahead_the_socket_is_read_at_ticks_only() -> None:
     received, _ = _received_before_first_tick(read_ahead_s=0.0, expect=0)
     assert received == 0
+
+
+class _CountingSensor(Lpf1UdpSensor):
+    """The real driver, counting the worker's read passes that found profiles."""
+
+    passes = 0
+
+    def read_blocks(self, max_profiles: int = 4096) -> list[Any]:
+        out = super().read_blocks(max_profiles)
+        if out:
+            self.passes += 1
+        return out
+
+
+def _passes_per_tick(read_ahead_profiles: int) -> float:
+    """A 1 kHz stream for 0.6 s into a worker ticking every 20 ms and reading ahead every
+    2 ms at most: read passes that found profiles, per tick."""
+    sensor = _CountingSensor(bind_host="127.0.0.1", port=0)
+    sensor.open()
+    settings = PipelineSettings(
+        batch_s=0.02, read_ahead_s=0.002, read_ahead_profiles=read_ahead_profiles
+    )
+    pipeline = Pipeline(
+        sensor, StandInRobot(), Pairer(PairerConfig()), AlignmentSetup(np.eye(4)), None,
+        settings=settings,
+    )  # fmt: skip
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    grams = _datagrams(600, n_points=64)
+    try:
+        pipeline.start()
+        t0 = time.monotonic()
+        for k, g in enumerate(grams):
+            time.sleep(max(0.0, t0 + k * 0.001 - time.monotonic()))
+            tx.sendto(g, sensor.local_address)
+        ticks = (time.monotonic() - t0) / settings.batch_s
+    finally:
+        pipeline.stop(drain=False)
+        tx.close()
+        sensor.close()
+    return sensor.passes / ticks
+
+
+def test_read_ahead_waits_for_enough_profiles() -> None:
+    # A pass costs ~0.1 ms however few profiles it decodes: at 1 kHz, 32 profiles come every
+    # 32 ms, so the worker reads at its ticks only; asked for one, it reads every 2-3 ms.
+    sparse, eager = _passes_per_tick(32), _passes_per_tick(1)
+    assert sparse <= 1.5, sparse
+    assert eager >= 3.0, eager
