@@ -56,6 +56,10 @@ _CMSG = np.dtype(
     [("len", "<u8"), ("level", "<i4"), ("type", "<i4"), ("sec", "<i8"), ("nsec", "<i8")]
 )
 """A ``struct cmsghdr`` holding one ``struct timespec``."""
+_LEVEL_AT = 8
+"""Offset of ``level`` (then ``type``) in :data:`_CMSG`."""
+_LEVEL_TYPE = np.array([socket.SOL_SOCKET, _SCM_TIMESTAMPNS], "<i4").view("<i8")[0]
+"""``level`` and ``type`` of a receipt stamp's control message, read as one int64."""
 
 
 def _load() -> Callable[..., int] | None:
@@ -144,13 +148,18 @@ class MmsgReceiver:
         hdr["control"] = self._ctrl.ctypes.data + k * np.uint64(_CMSG_BYTES)
         self._hdr = hdr
         self._hdr_ptr = ctypes.c_void_p(hdr.ctypes.data)
+        # The fields read or reset at every call, as views made once (a structured array's
+        # field lookup costs more than the rows' values).
+        self._namelen, self._controllen, self._len = hdr["namelen"], hdr["controllen"], hdr["len"]
+        ctrl = self._ctrl
+        self._sec, self._nsec = ctrl["sec"], ctrl["nsec"]
+        self._ctrl_lt = np.ndarray((self.rows,), "<i8", ctrl, _LEVEL_AT, (_CMSG.itemsize,))
 
     def receive(self, fd: int, limit: int) -> int:
         """Datagrams received now, without waiting (0: none waiting); ``OSError`` otherwise."""
         k = max(1, min(int(limit), self.rows))
-        hdr = self._hdr[:k]
-        hdr["namelen"] = _NAME_BYTES
-        hdr["controllen"] = _CMSG_BYTES
+        self._namelen[:k] = _NAME_BYTES
+        self._controllen[:k] = _CMSG_BYTES
         assert _recvmmsg is not None
         n = _recvmmsg(fd, self._hdr_ptr, k, _MSG_DONTWAIT, None)
         if n < 0:
@@ -161,7 +170,7 @@ class MmsgReceiver:
         return n
 
     def lengths(self, n: int) -> NDArray[np.int64]:
-        return self._hdr["len"][:n].astype(np.int64)
+        return self._len[:n].astype(np.int64)
 
     def sources(self, n: int) -> NDArray[np.uint32]:
         """The IPv4 source addresses (network byte order, as ``socket.inet_aton`` gives)."""
@@ -169,9 +178,11 @@ class MmsgReceiver:
 
     def realtime_stamps(self, n: int) -> NDArray[np.int64] | None:
         """The kernel's CLOCK_REALTIME receipt stamps (ns); None unless every datagram has one."""
-        c = self._ctrl[:n]
-        ok = (self._hdr["controllen"][:n] >= _CMSG_BYTES) & (c["level"] == socket.SOL_SOCKET)
-        ok &= c["type"] == _SCM_TIMESTAMPNS
-        if not ok.all():
+        # The control block is whole, at the socket level and a timestamp in every row: three
+        # comparisons as one (level and type side by side as one int64).
+        lt = self._ctrl_lt[:n]
+        if not (lt == _LEVEL_TYPE).all() or not (self._controllen[:n] >= _CMSG_BYTES).all():
             return None
-        return c["sec"] * 1_000_000_000 + c["nsec"]
+        out = self._sec[:n] * 1_000_000_000
+        out += self._nsec[:n]
+        return out
