@@ -32,6 +32,7 @@ from wristscan.daemon.devices import Devices, make_devices, pairer_config, robot
 from wristscan.daemon.io.archive import ScanArchive
 from wristscan.daemon.io.calibfile import CalibrationFileError
 from wristscan.daemon.service.changes import ALL_DEVICES, Changes, config_changes
+from wristscan.daemon.service.heap import release_free_heap
 from wristscan.daemon.service.notify import Notifier, Watchdog
 from wristscan.daemon.service.outages import OutageMonitor
 from wristscan.daemon.service.pipeline import AlignmentSetup, Pipeline, PipelineSettings
@@ -51,6 +52,8 @@ __all__ = ["Service", "StartupError", "load_setup", "one_line", "run_service"]
 log = logging.getLogger(__name__)
 
 _CHECK_S = 0.25
+_TRIM_S = 5.0
+"""The heap's free pages go back to the system this often."""
 """How often the main loop looks at the pipeline and the devices' outages."""
 _LINGER_S = 0.2
 """Before a session that published is closed: zenoh's time to send what it has queued."""
@@ -499,11 +502,14 @@ class Service:
 
     def _loop(self) -> int:
         assert self.cfg is not None
-        next_status = time.monotonic()
+        next_status = next_trim = time.monotonic()
         shown = 0
         while True:
             self._signal.wait(timeout=_CHECK_S)
             self._signal.clear()
+            if time.monotonic() >= next_trim:  # the RSS as what the daemon uses (service/heap.py)
+                next_trim = time.monotonic() + _TRIM_S
+                release_free_heap()
             if self._stop.is_set():
                 log.info("stop requested: draining")
                 return 0
