@@ -923,8 +923,12 @@ def pair_ticks(st: TickStreams, blocks: bool, warm_ns: int = 500 * MS) -> dict[s
     the robot states are added outside it too (their own stream)."""
     pairer = Pairer(pairer_config(SENSOR_LATENCY_NS))
     interp, feed = [0], [0]
+    # Robot interpolation + FK: locating the instants and the poses (the poll's shortcut for
+    # an all-ready tick calls these two directly, the general path through interpolate()).
     robot = pairer.robot
-    robot.interpolate = _timed(robot.interpolate, interp)  # type: ignore[method-assign,assignment]
+    robot._poses = _timed(robot._poses, interp)  # type: ignore[method-assign,assignment]
+    buf = robot.buffer
+    buf._locate = _timed(buf._locate, interp)  # type: ignore[method-assign,assignment]
     clk = pairer.sensor_clock(1)
     clk.feed_many = _timed(clk.feed_many, feed)  # type: ignore[method-assign,assignment]
     clk.feed = _timed(clk.feed, feed)  # type: ignore[method-assign,assignment]
@@ -997,6 +1001,57 @@ def figure_block_pairing(
     ]
 
 
+def tick_cpu_us(st: TickStreams, warm_ns: int = 500 * MS) -> float:
+    """Thread CPU per 10 ms tick of everything the pairer does in it (the tick's robot states
+    added, its profiles as one block, the poll with its batches built), after ``warm_ns``."""
+    pairer = Pairer(pairer_config(SENSOR_LATENCY_NS))
+    pi = np.searchsorted(st.arrive, st.ticks, side="right")
+    ri = np.searchsorted(st.state_arrive, st.ticks, side="right")
+    a = b = cpu = n = 0
+    for tick, pe, re in zip(st.ticks.tolist(), pi.tolist(), ri.tolist(), strict=True):
+        block = ProfileBlock(
+            np.ones(pe - a, np.int64),
+            np.arange(a, pe),
+            st.dev[a:pe].copy(),
+            st.arrive[a:pe].copy(),
+            st.y,
+            st.z[a:pe].copy(),
+            st.valid[a:pe].copy(),
+        )
+        t = time.thread_time_ns()
+        for s in st.states[b:re]:
+            pairer.add_robot_state(s)
+        if pe > a:
+            pairer.add_block(block)
+        pairer.poll()
+        if tick > T0 + warm_ns:
+            cpu += time.thread_time_ns() - t
+            n += 1
+        a, b = pe, re
+    return cpu / max(n, 1) / 1e3
+
+
+def figure_tick_cost(rates: tuple[float, float] = (1000.0, 5000.0), runs: int = 5) -> list[Figure]:
+    """The pairer's CPU per 10 ms tick at two rates (512-point profiles, medians of ``runs``
+    alternating runs) split into a fixed part per tick and a part per profile (issue 21: at
+    1-5 kHz the fixed part is most of the pairing)."""
+    st = [make_tick_streams(r, 512, 2.0, 10 * MS, seed=12) for r in rates]
+    got: list[list[float]] = [[], []]
+    for _ in range(runs):
+        for k in (0, 1):
+            got[k].append(tick_cpu_us(st[k]))
+    c1, c2 = (float(np.median(g)) for g in got)
+    per_profile = (c2 - c1) / ((rates[1] - rates[0]) / 100.0)
+    fixed = c1 - per_profile * rates[0] / 100.0
+    label = "pairer per 10 ms tick"
+    return [
+        Figure(f"{label} at {rates[0] / 1e3:g} kHz (states + block + poll)", c1, "us", "", None),
+        Figure(f"{label} at {rates[1] / 1e3:g} kHz", c2, "us", "", None),
+        Figure(f"{label}: fixed part", fixed, "us", "", None),
+        Figure(f"{label}: per profile", per_profile, "us", "", None),
+    ]
+
+
 def run(seed: int = 1) -> list[Figure]:
     figs, latency_ns = figure_latency(seed)
     return (
@@ -1006,6 +1061,7 @@ def run(seed: int = 1) -> list[Figure]:
         + figure_reset_and_wrap(seed, latency_ns)
         + figure_load_and_stalls(seed)
         + figure_block_pairing()
+        + figure_tick_cost()
         + figure_feed_blocks()
         + figure_late_sender(seed=seed)
     )
@@ -1028,7 +1084,8 @@ def main(argv: list[str] | None = None) -> int:
         figs = figure_feed_blocks() + figure_late_sender(seed=args.seed)
         return report("sync: clock feed, late sender (issue 21)", figs, json_out=args.json)
     if args.blocks_only:
-        return report("sync: block pairing (issue 21)", figure_block_pairing(), json_out=args.json)
+        figs = figure_block_pairing() + figure_tick_cost()
+        return report("sync: block pairing (issue 21)", figs, json_out=args.json)
     return report("sync (issue 5)", run(args.seed), json_out=args.json)
 
 

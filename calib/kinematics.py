@@ -166,25 +166,43 @@ def _dh_constants(model: DHParams) -> tuple[FloatArray, ...]:
     return off, np.cos(alpha)[:, None], np.sin(alpha)[:, None], a[:, None], d[:, None]
 
 
+@functools.lru_cache(maxsize=64)
+def _dh_rows(model: DHParams) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """``theta_offset`` and the DH matrices ``Rz Tz Tx Rx`` of the six joints as constants:
+    their first two rows are ``cos theta * Kc + sin theta * Ks`` (``(6, 8, 1)``: the rows'
+    eight entries, poses last), the last two ``K23`` (``(6, 1, 2, 4)``)."""
+    off, ca, sa, a, d = _dh_constants(model)
+    Kc = np.zeros((6, 2, 4))
+    Ks = np.zeros((6, 2, 4))
+    K23 = np.zeros((6, 1, 2, 4))
+    Kc[:, 0, 0] = 1.0
+    Kc[:, 0, 3] = a[:, 0]
+    Kc[:, 1, 1] = ca[:, 0]
+    Kc[:, 1, 2] = -sa[:, 0]
+    Ks[:, 0, 1] = -ca[:, 0]
+    Ks[:, 0, 2] = sa[:, 0]
+    Ks[:, 1, 0] = 1.0
+    Ks[:, 1, 3] = a[:, 0]
+    K23[:, 0, 0, 1] = sa[:, 0]
+    K23[:, 0, 0, 2] = ca[:, 0]
+    K23[:, 0, 0, 3] = d[:, 0]
+    K23[:, 0, 1, 3] = 1.0
+    return off, Kc.reshape(6, 8, 1), Ks.reshape(6, 8, 1), K23
+
+
 def _forward_matmul(model: DHParams, qa: FloatArray) -> FloatArray:
     """:func:`forward` as the product of the six DH matrices ``Rz Tz Tx Rx``, built for all
-    joints at once (joint axis first, so each product takes contiguous stacks)."""
-    off, ca, sa, a, d = _dh_constants(model)
+    joints at once (joint axis first, so each product takes contiguous stacks). Each entry of
+    their first two rows is ``c * k + s * 0`` or ``c * 0 + s * k``: the same products as
+    entry by entry, in a few whole-array steps (per-call cost dominates small batches)."""
+    off, Kc, Ks, K23 = _dh_rows(model)
     th = (qa.reshape(-1, 6) + off).T
-    c, s = np.cos(th), np.sin(th)
-    A = np.zeros((6, th.shape[1], 4, 4))
-    A[..., 0, 0] = c
-    A[..., 0, 1] = s * -ca
-    A[..., 0, 2] = s * sa
-    A[..., 0, 3] = c * a
-    A[..., 1, 0] = s
-    A[..., 1, 1] = c * ca
-    A[..., 1, 2] = c * -sa
-    A[..., 1, 3] = s * a
-    A[..., 2, 1] = sa
-    A[..., 2, 2] = ca
-    A[..., 2, 3] = d
-    A[..., 3, 3] = 1.0
+    P = th.shape[1]
+    top = np.cos(th)[:, None, :] * Kc
+    top += np.sin(th)[:, None, :] * Ks
+    A = np.empty((6, P, 4, 4))
+    A[:, :, 2:] = K23
+    A[:, :, :2] = top.transpose(0, 2, 1).reshape(6, P, 2, 4)
     T = A[0] @ A[1]
     for i in range(2, 6):
         np.matmul(T, A[i], out=A[i - 2])

@@ -93,20 +93,32 @@ class SampleBuffer:
     def append(self, t_ns: int, values: ArrayLike) -> bool:
         """Add a sample; returns False (and counts it) when ``t_ns`` is not after the last one."""
         t = int(t_ns)
+        i = self._slot(t)
+        if i < 0:
+            return False
+        self._v[i] = values
+        self._commit(i, t)
+        return True
+
+    def _slot(self, t: int) -> int:
+        """The row a sample at ``t`` goes to (room made): write its values there, then
+        :meth:`_commit` it; -1 (counted) when ``t`` is not after the last sample."""
         if self._i1 > self._i0 and t <= self._t[self._i1 - 1]:
             self.n_rejected += 1
-            return False
+            return -1
         if self._i1 == self._t.shape[0]:
             keep = min(self.capacity - 1, self._i1 - self._i0)
             self._t[:keep] = self._t[self._i1 - keep : self._i1]
             self._v[:keep] = self._v[self._i1 - keep : self._i1]
             self._i0, self._i1 = 0, keep
-        self._t[self._i1] = t
-        self._v[self._i1] = values
-        self._i1 += 1
+        return self._i1
+
+    def _commit(self, i: int, t: int) -> None:
+        """Add the sample whose values were written to row ``i`` (from :meth:`_slot`)."""
+        self._t[i] = t
+        self._i1 = i + 1
         if self._i1 - self._i0 > self.capacity:
             self._i0 += 1
-        return True
 
     def locate(self, t_ns: ArrayLike) -> tuple[IntArray, FloatArray, ReasonArray]:
         """Bracket each query: index ``i`` into :attr:`times` with
@@ -236,10 +248,15 @@ class RobotStateBuffer:
 
     def append(self, t_ns: int, q: ArrayLike, tcp_pose: ArrayLike) -> bool:
         """Add a sample at ``t_ns``; False when its time does not increase (it is ignored)."""
-        row = np.empty(12)
+        buf, t = self._buf, int(t_ns)
+        i = buf._slot(t)
+        if i < 0:
+            return False
+        row = buf._v[i]  # written in place: no temporary row
         row[:6] = q
         row[6:] = tcp_pose
-        return self._buf.append(t_ns, row)
+        buf._commit(i, t)
+        return True
 
     def interpolate(self, t_ns: ArrayLike) -> tuple[FloatArray, NDArray[np.bool_], ReasonArray]:
         """``flange2base`` ``(M, 4, 4)`` at each instant (NaN where not OK), ok mask ``(M,)`` and

@@ -21,6 +21,7 @@ pending suspicion keeps the following arrivals on ``feed`` until it is settled).
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -36,6 +37,9 @@ FloatArray = NDArray[np.float64]
 
 # Arrivals examined at once (a whole recording fed in one call is taken in slices of this).
 _LOOKAHEAD = 4096
+# Blocks of at most this many arrivals take the scalar path (:func:`_small_segment`): a few us
+# of Python per arrival cost less there than the ~30 numpy calls of :func:`_fast_segment`.
+_SMALL = 48
 
 
 def feed_block(cm: ClockMapper, xs: IntArray, ys: IntArray) -> IntArray:
@@ -43,8 +47,11 @@ def feed_block(cm: ClockMapper, xs: IntArray, ys: IntArray) -> IntArray:
     n = int(xs.shape[0])
     out = np.empty(n, dtype=np.int64)
     i = 0
+    lists = (xs.tolist(), ys.tolist()) if n <= _SMALL else None
     while i < n:
-        j = _fast_segment(cm, xs, ys, i)
+        j = -1 if lists is None else _small_segment(cm, lists[0], lists[1], i)
+        if j < 0:
+            j = _fast_segment(cm, xs, ys, i)
         if j > i:
             out[i:j] = cm.epoch
             i = j
@@ -96,6 +103,61 @@ def _fast_segment(cm: ClockMapper, xs: IntArray, ys: IntArray, i: int) -> int:
     if refit:
         cm._refit()
     return i + end
+
+
+def _small_segment(cm: ClockMapper, xs: list[int], ys: list[int], i: int) -> int:
+    """:func:`_fast_segment` with Python scalars, for a small block (lists ``xs``, ``ys``): the
+    same checks and the same floating-point steps, the arrivals then added one by one as
+    ``ClockMapper._add`` does (without its refit). -1 when an arrival lies below the line by
+    more than the quick tolerance (the exact test is :func:`_fast_segment`'s); nothing is
+    changed then."""
+    line = cm._line
+    if cm._n == 0 or cm._excess or cm._stuck_n or line is None:
+        return i
+    cfg = cm.config
+    n = len(xs)
+    prev = cm._x_last
+    if xs[i] <= prev:
+        return i
+    due = cm._last_fit_x + (cfg.refit_interval_ns if cm.locked else cfg.bucket_ns)
+    x_ref, y_ref = cm._x_ref, cm._y_ref
+    a, d = line.a, line.d
+    lim = -(cfg.reanchor_tolerance_ns + 3.0 * line.u0) if cm._ever_locked else -math.inf
+    pts: list[tuple[int, float, float]] = []
+    refit = False
+    end = i
+    while end < n:
+        x = xs[end]
+        if x <= prev:
+            break
+        dxi = x - x_ref
+        dx = float(dxi)
+        r = float(ys[end] - y_ref) - dx
+        if r - (a + d * dx) < lim:
+            return -1
+        pts.append((dxi, dx, r))
+        end += 1
+        prev = x
+        if x >= due:
+            refit = True
+            break
+    cm.n_fed += end - i
+    cm._n += end - i
+    cm._recent.extend(zip(xs[i:end], ys[i:end], strict=True))
+    cm._x_last = prev
+    bucket = cfg.bucket_ns
+    for dxi, dx, r in pts:
+        b = dxi // bucket
+        if b == cm._ob:
+            if r - d * dx < cm._or - d * cm._ox:
+                cm._ox, cm._or = dx, r
+        else:
+            if cm._ob >= 0:
+                cm._push(cm._ox, cm._or)
+            cm._ob, cm._ox, cm._or = b, dx, r
+    if refit:
+        cm._refit()
+    return end
 
 
 def _add_many(

@@ -60,7 +60,13 @@ class EnvelopeLine:
 
 
 def support_slope(
-    X: FloatArray, R: FloatArray, x_e: float, lo: float, hi: float, guess: float | None = None
+    X: FloatArray,
+    R: FloatArray,
+    x_e: float,
+    lo: float,
+    hi: float,
+    guess: float | None = None,
+    span: float | None = None,
 ) -> float:
     """Slope of the highest line at ``x_e`` lying below all points ``(X, R)``.
 
@@ -69,9 +75,10 @@ def support_slope(
     spanning ``x_e``. Slopes outside ``[lo, hi]`` are clipped to the range. ``guess``: a slope
     near the answer (the previous fit's); when ``guess +- _WARM_HALF_WIDTH`` brackets the
     answer, the search starts there with the points pruned at once (same edge, a third of the
-    passes over the whole window).
+    passes over the whole window). ``span``: ``X.max() - X.min()`` when the caller has it.
     """
-    span = float(X.max() - X.min())
+    if span is None:
+        span = float(X.max() - X.min())
     pruned = False
     if guess is not None:
         a, b = max(lo, guess - _WARM_HALF_WIDTH), min(hi, guess + _WARM_HALF_WIDTH)
@@ -139,7 +146,7 @@ def fit_window(
     f = cfg.eval_fraction
     x0 = float(X.min())
     x_e = x0 + f * span
-    d = support_slope(X, R, x_e, lo, hi, None if line is None else line.d)
+    d = support_slope(X, R, x_e, lo, hi, None if line is None else line.d, span)
     # Uncertainty: the same estimator on the even and on the odd buckets gives two
     # independent half-data estimates; half their difference is of the order of the full
     # estimate's error whatever the delay distribution. Windowed RMS: one split is a noisy
@@ -166,7 +173,10 @@ def fit_window(
     # The edges spanning the quartiles then disagree by more than the noise: the data do
     # not determine the drift, so it stays where it was (a clock's drift changes slowly).
     xq = (x0 + max(f - 0.25, 0.0) * span, x0 + min(f + 0.25, 1.0) * span)
-    dq = (support_slope(X, R, xq[0], lo, hi, d), support_slope(X, R, xq[1], lo, hi, d))
+    dq = (
+        support_slope(X, R, xq[0], lo, hi, d, span),
+        support_slope(X, R, xq[1], lo, hi, d, span),
+    )
     if abs(dq[0] - dq[1]) > max(6.0 * u_slope, 0.01 * cfg.typical_drift):
         ref = line.d if line is not None else pd
         G = R - ref * X

@@ -30,19 +30,16 @@ Not thread-safe: one owner thread adds records and polls.
 from __future__ import annotations
 
 import logging
-import math
-from dataclasses import dataclass, field, replace
-from typing import Literal
+from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
 
-from wristscan.calib import kinematics
 from wristscan.daemon.sync.batch import PairedBatch, concat_batches
 from wristscan.daemon.sync.buffers import Reason, RobotStateBuffer, SampleBuffer, ScalarBuffer
-from wristscan.daemon.sync.clockconfig import ClockConfig
 from wristscan.daemon.sync.clockmap import ClockMapper
 from wristscan.daemon.sync.counters import CounterUnwrapper, unwrap_nearest
+from wristscan.daemon.sync.pairconfig import PairerConfig
 from wristscan.daemon.sync.pending import PendingProfiles
 from wristscan.drivers.records import Profile, ProfileBlock, RobotState, TableState
 
@@ -101,6 +98,8 @@ _TABLE_STATUS = _status_of(NOT_YET=_W_TABLE, BEFORE_BUFFER=_D_TABLE_BEFORE, GAP=
 _ENCODER_STATUS = _status_of(NOT_YET=_W_ENCODER, BEFORE_BUFFER=_D_ENC_BEFORE)
 """Encoder mode: a gap between counts is no reason by itself (the time gap is checked)."""
 
+_NO_ROWS = np.zeros(0, dtype=np.int64)
+
 DROP_REASONS: tuple[str, ...] = (
     *sorted(set(_REASON_OF.values())),
     "no_encoder_count",
@@ -108,58 +107,6 @@ DROP_REASONS: tuple[str, ...] = (
     "flushed",
 )
 """Every reason a profile can be dropped for (keys of ``Pairer.dropped``)."""
-
-
-@dataclass(frozen=True)
-class PairerConfig:
-    """Settings of a :class:`Pairer`. Times in ns, angles in rad."""
-
-    mode: Literal["clock", "encoder"] = "clock"
-    robot_model: str | kinematics.DHParams = "UR5e"
-    interpolation: Literal["joint", "tcp"] = "joint"
-    """``joint``: interpolate joints + forward kinematics; ``tcp``: interpolate the TCP pose."""
-    tcp_offset: tuple[float, ...] = (0.0,) * 6
-    """TCP configured on the controller (UR pose in the flange frame), for ``tcp`` mode."""
-    sensor_latency_ns: int = 0
-    """Exposure-to-timestamp latency of the sensors (measured by calib.latency). In encoder
-    mode it is subtracted from the instant the count was reached: a trigger-to-exposure delay
-    is a negative value."""
-    robot_latency_ns: int = 0
-    """Measurement-to-timestamp latency of the controller samples."""
-    table_latency_ns: int = 0
-    """Measurement-to-stamp latency of table readings (to receipt, if they carry no time)."""
-    sensor_time_modulus_ns: int | None = None
-    """Sensor timestamps wrap at this many ns (a 24-bit ms counter: ``2**24 * 10**6``)."""
-    encoder_modulus: int | None = None
-    """Encoder counts wrap at this value (``2**32`` for a 32-bit counter)."""
-    max_wait_ns: int = 200_000_000
-    """How long (host time after receipt) a profile may wait for the states it needs."""
-    robot_max_gap_ns: int = 20_000_000
-    """Largest spacing of two robot samples interpolated between (controller clock)."""
-    robot_capacity: int = 8192
-    use_table: bool = False
-    table_max_gap_ns: int = 200_000_000
-    table_period_rad: float | None = 2.0 * math.pi
-    """Unwrap table angles with this period (None: the angle does not wrap)."""
-    table_capacity: int = 4096
-    encoder_max_gap_ns: int = 20_000_000
-    encoder_capacity: int = 8192
-    max_pending: int = 100_000
-    """Profiles held at most; beyond, the oldest are dropped (bounded memory)."""
-    max_batch_profiles: int = 512
-    """Profiles per released batch at most (more ready at once are split). Only a backlog
-    reaches it (5 kHz in 10 ms ticks makes 50): 512 x 2048 points keep a batch's arrays in
-    the tens of MB, which the allocator reuses, where 4096 made 100 MB+ arrays that were
-    mapped and page-faulted afresh for every batch just when the pipeline was behind."""
-    sensor_clock: ClockConfig = field(default_factory=ClockConfig)
-    robot_clock: ClockConfig = field(default_factory=ClockConfig)
-    table_clock: ClockConfig = field(default_factory=ClockConfig)
-
-    def __post_init__(self) -> None:
-        if self.mode not in ("clock", "encoder"):
-            raise ValueError(f"PairerConfig.mode must be 'clock' or 'encoder', not {self.mode!r}")
-        if self.max_wait_ns <= 0 or self.max_pending < 1 or self.max_batch_profiles < 1:
-            raise ValueError("PairerConfig: max_wait_ns, max_pending, max_batch_profiles > 0")
 
 
 class Pairer:
@@ -375,6 +322,9 @@ class Pairer:
         if P == 0:
             return []
         pend.consolidate()
+        fast = self._poll_all_ready()
+        if fast is not None:
+            return fast
         now = self._now if now_ns is None else max(int(now_ns), self._now)
         self._need_ns = {}
         host, x = pend.host, pend.x
@@ -419,6 +369,45 @@ class Pairer:
             self.batches += len(batches)
         if ready.shape[0] or dropping:
             self._pending.keep(np.flatnonzero(waiting ^ late))
+        return batches
+
+    def _poll_all_ready(self) -> list[PairedBatch] | None:
+        """:meth:`poll` when every pending profile can be paired now (the usual tick: one sensor
+        epoch, clocks locked, states covering every exposure, no table): the same batches
+        without the per-profile status arrays; None (nothing done) otherwise."""
+        pend = self._pending
+        key = pend.single_key()
+        cfg = self.config
+        if key is None or cfg.mode != "clock" or cfg.use_table or not self.robot_clock.locked:
+            return None
+        clk = self._sensor_clocks[key[0]]
+        if not clk.is_locked(key[1]):
+            return None
+        x = pend.x
+        exposure = clk.to_host(x, key[1])
+        t_robot = self.robot_clock.to_device(exposure)
+        i, s, _, all_ok = self.robot.buffer._locate(t_robot)
+        if not all_ok:
+            return None
+        self._need_ns = {}
+        self.waiting_for_states = 0
+        unc = clk.uncertainty_ns(x, key[1])
+        F = self.robot._poses(i, s)
+        P = int(x.shape[0])
+        step = cfg.max_batch_profiles
+        sels: list[slice] | list[IntArray]
+        if P == 1 or bool((exposure[1:] >= exposure[:-1]).all()):
+            # In exposure order already (the usual tick): the batches take slices of this
+            # poll's arrays, not copies (the stable sort would keep this order).
+            sels = [slice(k, min(k + step, P)) for k in range(0, P, step)]
+        else:
+            ready = np.argsort(exposure, kind="stable")
+            sels = [ready[k : k + step] for k in range(0, P, step)]
+        host = pend.host
+        batches = [self._batch(sel, exposure, unc, F, None, host) for sel in sels]
+        self.paired += P
+        self.batches += len(batches)
+        pend.keep(_NO_ROWS)
         return batches
 
     def merge(self, batches: list[PairedBatch]) -> list[PairedBatch]:
@@ -546,7 +535,7 @@ class Pairer:
 
     def _batch(
         self,
-        sel: IntArray,
+        sel: IntArray | slice,
         exposure: IntArray,
         unc: FloatArray,
         F: FloatArray,

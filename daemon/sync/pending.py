@@ -227,7 +227,10 @@ class PendingProfiles:
         """Bring every queued profile into :attr:`table` (in arrival order)."""
         self._stage_out()
         if self._chunks:
-            self.table = np.concatenate([self.table, *self._chunks], axis=1)
+            if self.table.shape[1] == 0 and len(self._chunks) == 1:
+                self.table = self._chunks[0]  # the usual tick: nothing held over, one block
+            else:
+                self.table = np.concatenate([self.table, *self._chunks], axis=1)
             self._chunks = []
         if self._skip:
             skip, self._skip = self._skip, 0
@@ -274,12 +277,20 @@ class PendingProfiles:
         self.blocks = kept
         self.table[0] = new_index[ids]
 
-    def gather(self, sel: IntArray) -> Gathered:
-        """The profiles ``sel`` (indices into the consolidated arrays) in that order: runs of
-        consecutive rows of a block as views (no copy); heavily interleaved ones copied once,
-        block by block."""
+    def gather(self, sel: IntArray | slice) -> Gathered:
+        """The profiles ``sel`` (indices into the consolidated arrays, or a slice of them) in
+        that order: runs of consecutive rows of a block as views (no copy); heavily interleaved
+        ones copied once, block by block."""
+        P = (
+            int(sel.shape[0])
+            if isinstance(sel, np.ndarray)
+            else len(range(*sel.indices(len(self))))
+        )
+        if len(self.blocks) == 1:
+            one = self._gather_run(sel, P)
+            if one is not None:
+                return one
         bid, row = self.block[sel], self.row[sel]
-        P = int(sel.shape[0])
         nb = np.fromiter((b.n_points for b in self.blocks), np.int64, len(self.blocks))
         offsets = np.zeros(P + 1, dtype=np.int64)
         np.cumsum(nb[bid], out=offsets[1:])
@@ -309,6 +320,26 @@ class PendingProfiles:
             out.intensity = np.empty(total, dtype=np.uint8)
         for (_, rows, pos), blk in zip(groups, used, strict=True):
             _copy_rows(out, blk, rows, pos, offsets)
+        return out
+
+    def _gather_run(self, sel: IntArray | slice, P: int) -> Gathered | None:
+        """:meth:`gather` when one block is held and ``sel`` are consecutive rows of it, in
+        order (the usual tick): one segment, without the run search; None otherwise."""
+        row = self.row[sel]
+        r0 = int(row[0]) if P else 0
+        if P == 0 or int(row[-1]) - r0 != P - 1 or not bool((np.diff(row) == 1).all()):
+            return None
+        blk = self.blocks[0]
+        N = blk.n_points
+        r = slice(r0, r0 + P)
+        y = blk.y if blk.y.ndim == 1 else blk.y[r]
+        inten = None if blk.intensity is None else blk.intensity[r]
+        out = Gathered(
+            self.sid[sel], self.fc[sel], np.arange(0, (P + 1) * N, N, dtype=np.int64), None
+        )
+        out.points_per_profile = N
+        out.segments = [Segment(0, y, blk.z[r], blk.valid[r], inten)]
+        out.y_grid = blk.y if blk.y.ndim == 1 else None
         return out
 
 
