@@ -916,6 +916,19 @@ def _timed(f: Callable[..., object], acc: list[int]) -> Callable[..., object]:
     return g
 
 
+def _stream_block(st: TickStreams, a: int, b: int) -> ProfileBlock:
+    """Profiles ``a .. b - 1`` of a block stream as the driver would hand them over."""
+    return ProfileBlock(
+        np.ones(b - a, np.int64),
+        np.arange(a, b),
+        st.dev[a:b].copy(),
+        st.arrive[a:b].copy(),
+        st.y,
+        st.z[a:b].copy(),
+        st.valid[a:b].copy(),
+    )
+
+
 def pair_ticks(st: TickStreams, blocks: bool, warm_ns: int = 500 * MS) -> dict[str, float]:
     """Thread CPU per profile of pairing (add + poll, batches built) read tick by tick, after
     ``warm_ns``: the profiles of each tick handed over as one block, or record by record. The
@@ -941,15 +954,7 @@ def pair_ticks(st: TickStreams, blocks: bool, warm_ns: int = 500 * MS) -> dict[s
         for s in st.states[b:re]:
             pairer.add_robot_state(s)
         b = re
-        block = ProfileBlock(
-            np.ones(pe - a, np.int64),
-            np.arange(a, pe),
-            st.dev[a:pe].copy(),
-            st.arrive[a:pe].copy(),
-            st.y,
-            st.z[a:pe].copy(),
-            st.valid[a:pe].copy(),
-        )
+        block = _stream_block(st, a, pe)
         recs = [] if blocks else [block.profile(k) for k in range(pe - a)]
         interp[0] = feed[0] = 0
         t = time.thread_time_ns()
@@ -1009,15 +1014,7 @@ def tick_cpu_us(st: TickStreams, warm_ns: int = 500 * MS) -> float:
     ri = np.searchsorted(st.state_arrive, st.ticks, side="right")
     a = b = cpu = n = 0
     for tick, pe, re in zip(st.ticks.tolist(), pi.tolist(), ri.tolist(), strict=True):
-        block = ProfileBlock(
-            np.ones(pe - a, np.int64),
-            np.arange(a, pe),
-            st.dev[a:pe].copy(),
-            st.arrive[a:pe].copy(),
-            st.y,
-            st.z[a:pe].copy(),
-            st.valid[a:pe].copy(),
-        )
+        block = _stream_block(st, a, pe)
         t = time.thread_time_ns()
         for s in st.states[b:re]:
             pairer.add_robot_state(s)

@@ -147,17 +147,22 @@ def _small_segment(cm: ClockMapper, xs: list[int], ys: list[int], i: int) -> int
     cm._x_last = prev
     bucket = cfg.bucket_ns
     for dxi, dx, r in pts:
-        b = dxi // bucket
-        if b == cm._ob:
-            if r - d * dx < cm._or - d * cm._ox:
-                cm._ox, cm._or = dx, r
-        else:
-            if cm._ob >= 0:
-                cm._push(cm._ox, cm._or)
-            cm._ob, cm._ox, cm._or = b, dx, r
+        _bucket_point(cm, dxi // bucket, dx, r, d)
     if refit:
         cm._refit()
     return end
+
+
+def _bucket_point(cm: ClockMapper, b: int, dx: float, r: float, d: float) -> None:
+    """As ``ClockMapper._add`` keeps one point per bucket: the lowest against the drift ``d``
+    in bucket ``b``; the bucket before it goes to the window when ``b`` starts a new one."""
+    if b == cm._ob:
+        if r - d * dx < cm._or - d * cm._ox:
+            cm._ox, cm._or = dx, r
+    else:
+        if cm._ob >= 0:
+            cm._push(cm._ox, cm._or)
+        cm._ob, cm._ox, cm._or = b, dx, r
 
 
 def _add_many(
@@ -179,14 +184,7 @@ def _add_many(
         # One bucket (a tick shorter than a bucket): its lowest point (the first of equals),
         # then as _add does for one arrival.
         k = int(g.argmin())
-        x1, r1 = float(dx[k]), float(r[k])
-        if b_first == cm._ob:
-            if r1 - d * x1 < cm._or - d * cm._ox:
-                cm._ox, cm._or = x1, r1
-        else:
-            if cm._ob >= 0:
-                cm._push(cm._ox, cm._or)
-            cm._ob, cm._ox, cm._or = b_first, x1, r1
+        _bucket_point(cm, b_first, float(dx[k]), float(r[k]), d)
         return
     b = dxi // bucket
     starts = np.flatnonzero(b[1:] != b[:-1]) + 1
