@@ -1,9 +1,10 @@
 """Compiled loops for the daemon's hot path (extra ``fast``: numba), with numpy as the fallback.
 
 numpy needs several passes over a profile's points for what one loop does in one: the float32
-alignment of :func:`wristscan.calib.align.align_rows` costs ~7-8 us per 2048-point profile in
-numpy (cast, matmul, three strided copies into the interleaved output, the finiteness check) and
-~2.2 us compiled (benchmarks/calib_align.py ``--hot``). The kernels are compiled when first
+alignment of :func:`wristscan.calib.align.align_rows` with its WSC1 frame costs 8-20 us per
+2048-point profile in numpy (cast, matmul, three strided copies into the interleaved output, the
+compaction of invalid points, the finiteness check) and 4-8 us compiled (benchmarks/calib_align.py
+``--hot``, all valid to 30 % invalid scattered). The kernels are compiled when first
 asked for (:func:`warm`; ~0.3-0.6 s, then loaded from numba's on-disk cache) so that a process
 that never aligns never imports numba.
 
@@ -47,7 +48,9 @@ def warm() -> float:
     """Compile (or load) every kernel now, not on the first profile; returns the seconds it
     took (0 when they are not in use)."""
     t0 = time.perf_counter()
-    return time.perf_counter() - t0 if available() else 0.0
+    if not available():
+        return 0.0
+    return time.perf_counter() - t0
 
 
 def _build() -> dict[str, Callable[..., Any]] | None:

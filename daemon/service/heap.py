@@ -13,12 +13,8 @@ pages every few seconds (``malloc_trim``) costs a fraction of a millisecond each
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
-import logging
 import sys
 from collections.abc import Callable
-
-log = logging.getLogger(__name__)
 
 __all__ = ["release_free_heap"]
 

@@ -52,9 +52,9 @@ __all__ = ["Service", "StartupError", "load_setup", "one_line", "run_service"]
 log = logging.getLogger(__name__)
 
 _CHECK_S = 0.25
+"""How often the main loop looks at the pipeline and the devices' outages."""
 _TRIM_S = 5.0
 """The heap's free pages go back to the system this often."""
-"""How often the main loop looks at the pipeline and the devices' outages."""
 _LINGER_S = 0.2
 """Before a session that published is closed: zenoh's time to send what it has queued."""
 

@@ -271,6 +271,12 @@ class RobotStateBuffer:
             out[ok] = self._poses(i[ok], s[ok])
         return out, ok, reason
 
+    def poses_if_covered(self, t_ns: ArrayLike) -> FloatArray | None:
+        """``flange2base`` ``(M, 4, 4)`` at each instant when the samples cover every one of
+        them (all reasons OK: the pairer's usual tick, no masks), else None."""
+        i, s, _, all_ok = self._buf._locate(np.asarray(t_ns, dtype=np.int64))
+        return self._poses(i, s) if all_ok else None
+
     def _poses(self, i: IntArray, s: FloatArray) -> FloatArray:
         """``flange2base`` between samples ``i`` and ``i + 1`` at fractions ``s``."""
         V = self._buf.values

@@ -386,13 +386,12 @@ class Pairer:
         x = pend.x
         exposure = clk.to_host(x, key[1])
         t_robot = self.robot_clock.to_device(exposure)
-        i, s, _, all_ok = self.robot.buffer._locate(t_robot)
-        if not all_ok:
+        F = self.robot.poses_if_covered(t_robot)
+        if F is None:
             return None
         self._need_ns = {}
         self.waiting_for_states = 0
         unc = clk.uncertainty_ns(x, key[1])
-        F = self.robot._poses(i, s)
         P = int(x.shape[0])
         step = cfg.max_batch_profiles
         sels: list[slice] | list[IntArray]
