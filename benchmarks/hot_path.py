@@ -82,6 +82,9 @@ def measure_hot_path(
     from wristscan.drivers.records import RobotState
     from wristscan.drivers.sensor_lpf1 import Lpf1UdpSensor
 
+    from wristscan.calib import jit
+
+    jit.warm()  # as Pipeline.start does: compiled (or loaded) before the stream, not in it
     n_prof = int(rate_hz * seconds)
     t0 = time.monotonic_ns()
     t_exp = t0 + (np.arange(n_prof) * (1e9 / rate_hz)).astype(np.int64)

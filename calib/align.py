@@ -373,7 +373,7 @@ def _rows_jit(
     y2 = np.array(ya.reshape(1, -1) if ya.ndim == 1 else ya, np.float64, order="C")
     z2 = za if za.flags.c_contiguous and za.flags.writeable else np.array(za, order="C")
     mask = _NO_MASK if m is None else np.ascontiguousarray(m)
-    got = int(kern(y2, z2, mask, m is not None, A, out))
+    got = int(kern(y2, z2, mask, m is not None, A, out.reshape(-1)))
     if got >= 0 or not check_finite:
         return
     if m is None:  # as the numpy path: the inputs name what is wrong

@@ -4,12 +4,15 @@ numpy needs several passes over a profile's points for what one loop does in one
 alignment of :func:`wristscan.calib.align.align_rows` with its WSC1 frame costs 8-20 us per
 2048-point profile in numpy (cast, matmul, three strided copies into the interleaved output, the
 compaction of invalid points, the finiteness check) and 4-8 us compiled (benchmarks/calib_align.py
-``--hot``, all valid to 30 % invalid scattered). The kernels are compiled when first
-asked for (:func:`warm`; ~0.3-0.6 s, then loaded from numba's on-disk cache) so that a process
-that never aligns never imports numba.
+``--hot``, all valid to 30 % invalid scattered). The LPF1 block decoder's scaling of integer
+point codes to metres (:mod:`wristscan.drivers.lpf1_block`) costs ~1.7 us per profile in numpy
+(cast, scale, offset, compare, negate: five passes) and ~0.6 us compiled, bit for bit the same
+values. The kernels are compiled when first asked for (:func:`warm`; ~0.3-0.6 s, then loaded
+from numba's on-disk cache) so that a process that never aligns never imports numba.
 
 Without numba, or with the environment variable ``WRISTSCAN_JIT=0``, every caller takes its
-numpy path; the two agree to float32 rounding (tests/calib/test_align_rows.py runs both).
+numpy path; the alignments agree to float32 rounding (tests/calib/test_align_rows.py runs both),
+the decodings bit for bit (tests/drivers/test_sensor_blocks.py).
 """
 
 from __future__ import annotations
@@ -88,11 +91,16 @@ def _exercise(ks: dict[str, Callable[..., Any]]) -> None:
     """Each kernel called once on tiny inputs of the types the callers pass."""
     import numpy as np
 
-    out = np.empty((2, 3), np.float32)
+    out = np.empty(6, np.float32)
     ks["align_rows"](
         np.zeros((1, 2)), np.zeros((1, 2)), np.ones((1, 2), np.bool_), True,
         np.zeros((1, 3, 3), np.float32), out,
     )  # fmt: skip
+    for dt in (np.int16, np.int32):
+        ks["scale_codes"](
+            np.zeros(4, dt), np.zeros(1, np.int64), 1e-9, 0.0, -1, np.empty((1, 2)),
+            np.empty((1, 2), np.bool_),
+        )  # fmt: skip
 
 
 def _njit(numba: Any, **options: Any) -> Callable[[Callable[..., Any]], Any]:
@@ -114,19 +122,19 @@ def _compile(numba: Any) -> dict[str, Callable[..., Any]]:
     """The kernels, jitted lazily (compiled at their first call, cached on disk)."""
     import numpy as np
 
-    # 'contract' lets a multiply and an add fuse (FMA); no other fast-math licence, so the
-    # finiteness test below is kept.
+    # 'contract' lets a multiply and an add fuse (FMA); no other fast-math licence.
     jit = _njit(numba, nogil=True, boundscheck=False, fastmath={"contract"})
 
     @jit
     def align_rows(y, z, valid, has_mask, A, out):  # type: ignore[no-untyped-def]
-        """Eq. (1) for P profiles into ``out`` (M, 3) float32: ``y`` (1 or P, N) float64,
-        ``z`` (P, N) float64, ``valid`` (P, N) (read when ``has_mask``), ``A`` (P, 3, 3)
-        float32 rows of ``[R[:, 1] | R[:, 2] | t]``. Returns the output rows written, or
-        -1 - row of the first valid point whose result is not finite."""
+        """Eq. (1) for P profiles into ``out``, the (M, 3) float32 output rows flat (3 M,):
+        ``y`` (1 or P, N) float64, ``z`` (P, N) float64, ``valid`` (P, N) (read when
+        ``has_mask``), ``A`` (P, 3, 3) float32 rows of ``[R[:, 1] | R[:, 2] | t]``. Returns the
+        output rows written, or -1 - row of the first valid point whose result is not finite."""
         p, n = z.shape
         shared = y.shape[0] == 1
-        k = 0
+        idx = np.empty(n, np.int64)
+        k = 0  # output values written, three a point
         for i in range(p):
             yi = y[0] if shared else y[i]
             zi = z[i]
@@ -140,33 +148,67 @@ def _compile(numba: Any) -> dict[str, Callable[..., Any]]:
                 for j in range(n):
                     nv += vi[j]
             start = k
-            # x - x is 0 for a finite x and NaN otherwise: one sum tells (no branch per point)
-            bad = np.float32(0.0)
-            if nv == n:  # the usual profile, every point valid: no compaction
-                o = out[k : k + n]
+            if nv == n:  # the usual profile, every point valid: no compaction, vectorised
+                o = out[k : k + 3 * n]
                 for j in range(n):
                     yy, zz = np.float32(yi[j]), np.float32(zi[j])
-                    x0 = a00 * yy + a01 * zz + a02
-                    x1 = a10 * yy + a11 * zz + a12
-                    x2 = a20 * yy + a21 * zz + a22
-                    o[j, 0], o[j, 1], o[j, 2] = x0, x1, x2
-                    bad += (x0 - x0) + (x1 - x1) + (x2 - x2)
-                k += n
+                    o[3 * j] = a00 * yy + a01 * zz + a02
+                    o[3 * j + 1] = a10 * yy + a11 * zz + a12
+                    o[3 * j + 2] = a20 * yy + a21 * zz + a22
+                k += 3 * n
             elif nv:
+                # The valid points' indices first (a store per point, no branch: a branch per
+                # point mispredicts on scattered invalid ones), then those points computed.
+                m = 0
                 for j in range(n):
-                    if vi[j]:
-                        yy, zz = np.float32(yi[j]), np.float32(zi[j])
-                        x0 = a00 * yy + a01 * zz + a02
-                        x1 = a10 * yy + a11 * zz + a12
-                        x2 = a20 * yy + a21 * zz + a22
-                        out[k, 0], out[k, 1], out[k, 2] = x0, x1, x2
-                        bad += (x0 - x0) + (x1 - x1) + (x2 - x2)
-                        k += 1
-            if bad != 0.0:
-                for r in range(start, k):
-                    if not (np.isfinite(out[r, 0]) and np.isfinite(out[r, 1])
-                            and np.isfinite(out[r, 2])):  # fmt: skip
-                        return -1 - r
-        return k
+                    idx[m] = j
+                    m += vi[j]
+                o = out[k : k + 3 * m]
+                for t in range(m):
+                    j = idx[t]
+                    yy, zz = np.float32(yi[j]), np.float32(zi[j])
+                    o[3 * t] = a00 * yy + a01 * zz + a02
+                    o[3 * t + 1] = a10 * yy + a11 * zz + a12
+                    o[3 * t + 2] = a20 * yy + a21 * zz + a22
+                k += 3 * m
+            # Not finite: the exponent's bits all set. An integer count vectorises where a
+            # float sum (NaN-propagating) would keep the loop above scalar, 4x slower.
+            bits = out[start:k].view(np.uint32)  # a slice's view: the count vectorises
+            nbad = 0
+            for r in range(k - start):
+                nbad += (bits[r] & 0x7F800000) == 0x7F800000
+            if nbad:
+                for r in range(k - start):
+                    if (bits[r] & 0x7F800000) == 0x7F800000:
+                        return -1 - (start + r) // 3
+        return k // 3
 
-    return {"align_rows": align_rows}
+    # No fast-math licence at all: the values must be numpy's multiply-then-add, bit for bit.
+    exact = _njit(numba, nogil=True, boundscheck=False)
+
+    @exact
+    def scale_codes(codes, starts, scale, offset, sentinel, z, valid):  # type: ignore[no-untyped-def]
+        """Integer point codes to metres for P profiles in one call: ``z[i, j] =
+        float64(codes[starts[i] + j]) * scale + offset`` (``codes`` 1-D int16/int32, e.g. a
+        receive buffer seen as such; ``z`` (P, N) float64), NaN and ``valid`` False where the
+        code is ``sentinel``. Returns the number of invalid points."""
+        p, n = z.shape
+        bad = 0
+        for i in range(p):
+            src = codes[starts[i] : starts[i] + n]  # a contiguous slice: the loops vectorise
+            zi, vi = z[i], valid[i]
+            for j in range(n):
+                zi[j] = np.float64(src[j]) * scale + offset
+            nv = 0
+            for j in range(n):
+                ok = src[j] != sentinel
+                vi[j] = ok
+                nv += ok
+            if nv != n:  # a few invalid points: NaN there
+                for j in range(n):
+                    if not vi[j]:
+                        zi[j] = np.nan
+            bad += n - nv
+        return bad
+
+    return {"align_rows": align_rows, "scale_codes": scale_codes}

@@ -20,7 +20,6 @@ from __future__ import annotations
 import json
 import logging
 import struct
-import zlib
 from dataclasses import dataclass
 from enum import IntEnum, IntFlag
 from functools import lru_cache
@@ -30,6 +29,7 @@ import numpy as np
 from cobs import cobs
 from numpy.typing import ArrayLike, NDArray
 
+from wristscan.drivers._crc import crc32
 from wristscan.drivers.records import Profile
 
 __all__ = [
@@ -213,7 +213,7 @@ def parse_message(buf: bytes | bytearray | memoryview) -> Message:
     if len(data) > total:
         raise FrameError(f"LPF1 message has {len(data) - total} trailing bytes")
     (crc,) = struct.unpack_from("<I", data, total - CRC_LEN)
-    if zlib.crc32(memoryview(data)[: total - CRC_LEN]) != crc:
+    if crc32(memoryview(data)[: total - CRC_LEN]) != crc:
         raise ChecksumError("LPF1 CRC-32 mismatch")
     h = Header(version, *f[2:])
     if h.msg_type not in _MSG_TYPES:
@@ -324,7 +324,7 @@ def _pack(
         *scales,
         *frag,
     )
-    crc = zlib.crc32(payload, zlib.crc32(head))
+    crc = crc32(payload, crc32(head))
     return b"".join((head, payload, crc.to_bytes(4, "little")))
 
 

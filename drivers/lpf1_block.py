@@ -11,19 +11,21 @@ per-datagram path, which parses and rejects or handles it exactly as before. The
 those :func:`wristscan.drivers.lpf1.decode_profile` gives, bit for bit: the same float64
 operations, element by element, on (profiles x points) arrays.
 
-Per datagram the only Python work is its CRC-32 (``zlib.crc32``, in C); nothing per point.
+Per datagram the only Python work is its CRC-32 (:data:`wristscan.drivers._crc.crc32`, in C);
+nothing per point.
 """
 
 from __future__ import annotations
 
 import itertools
-import zlib
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from wristscan.calib import jit
+from wristscan.drivers._crc import crc32
 from wristscan.drivers.lpf1 import _FORMAT, CRC_LEN, HEADER_LEN, MAGIC, VERSION, MsgType, _x_grid
 from wristscan.drivers.records import ProfileBlock
 
@@ -162,9 +164,9 @@ and only when the CRC matches (the last four bytes map one to one onto the resul
 
 
 def _crc_ok(grams: Datagrams, idx: NDArray[np.intp]) -> NDArray[np.bool_]:
-    """The CRC-32 of datagrams ``idx`` checked (one ``zlib.crc32`` call each, over the whole
+    """The CRC-32 of datagrams ``idx`` checked (one CRC-32 call each, over the whole
     datagram: :data:`_CRC_RESIDUE`)."""
-    view, stride, crc32 = grams.view, grams.stride, zlib.crc32
+    view, stride = grams.view, grams.stride
     rows, lengths = grams.rows[idx].tolist(), grams.lengths[idx].tolist()
     got = [crc32(view[r * stride : r * stride + n]) for r, n in zip(rows, lengths, strict=True)]
     return np.array(got, np.int64) == _CRC_RESIDUE
@@ -197,16 +199,27 @@ def decode_run(grams: Datagrams, headers: NDArray[Any], run: Run) -> ProfileBloc
     if flags & 0x02:
         x_raw = _rows_of(grams, run, pos, dt, n)
         pos += n * dt.itemsize
-    z_raw = _rows_of(grams, run, pos, dt, n)
+    z_at = pos
     pos += n * dt.itemsize
     intensity = None
     if flags & 0x01:
         intensity = np.array(_rows_of(grams, run, pos, np.dtype(np.uint8), n))
     # As lpf1.decode_profile, element by element (same float64 operations, same bits).
-    if sentinel is None:
-        z = z_raw.astype(np.float64)
+    scale_codes = jit.kernel("scale_codes") if sentinel is not None else None
+    if scale_codes is not None:
+        # Compiled: one pass over the codes where numpy takes five (cast, scale, offset,
+        # compare, negate), read straight from the receive buffer.
+        z = np.empty((b - a, n))
+        valid = np.empty((b - a, n), np.bool_)
+        codes = np.frombuffer(grams.buf, dt, len(grams.buf) // dt.itemsize)
+        starts = (grams.rows[a:b] * grams.stride + z_at) // dt.itemsize
+        scale_codes(codes, starts, zs * 1e-9, zo * 1e-6, sentinel, z, valid)
+        invalid = None
+    elif sentinel is None:
+        z = _rows_of(grams, run, z_at, dt, n).astype(np.float64)
         invalid = ~np.isfinite(z)
     else:
+        z_raw = _rows_of(grams, run, z_at, dt, n)
         invalid = z_raw == sentinel
         z = z_raw.astype(np.float64)  # exact; then in place (a casting multiply is slower)
         z *= zs * 1e-9
@@ -215,18 +228,24 @@ def decode_run(grams: Datagrams, headers: NDArray[Any], run: Run) -> ProfileBloc
         x = _x_grid(n, xs, xo)
     elif sentinel is None:
         x = x_raw.astype(np.float64)
-        invalid |= ~np.isfinite(x)
+        x_bad = ~np.isfinite(x)
     else:
         x_bad = x_raw == sentinel
         x = x_raw.astype(np.float64) * (xs * 1e-9) + xo * 1e-6
         np.copyto(x, np.nan, where=x_bad)
-        invalid |= x_bad
-    # Invalid points are few: their indices, then NaN there (a masked copy of every point
-    # costs twice as much).
-    bad = np.flatnonzero(invalid)
-    if bad.size:
-        z.reshape(-1)[bad] = np.nan
-    valid = ~invalid
+    if invalid is None:  # compiled: z and valid done but for explicit x's invalid points
+        if x_raw is not None:
+            valid &= ~x_bad
+            np.copyto(z, np.nan, where=x_bad)
+    else:
+        if x_raw is not None:
+            invalid |= x_bad
+        # Invalid points are few: their indices, then NaN there (a masked copy of every point
+        # costs twice as much).
+        bad = np.flatnonzero(invalid)
+        if bad.size:
+            z.reshape(-1)[bad] = np.nan
+        valid = ~invalid
     ev = (h["flags"] & 0x04).astype(np.bool_)
     encoder = None
     if ev.all():

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from wristscan.calib import jit
 from wristscan.drivers import _mmsg, lpf1, lpf1_block, rf627, rf627_block
 from wristscan.drivers._sensor import SensorCore
 from wristscan.drivers._udp import SO_TIMESTAMPNS, UdpProfileSensor, kernel_stamp
@@ -186,10 +187,14 @@ RECEIVE = ["recvmmsg", "recvmsg"]
 """Both ways ``read_blocks`` receives (many datagrams per system call, or one)."""
 
 
-@pytest.mark.parametrize("receive", RECEIVE)
+@pytest.mark.parametrize(("receive", "decode"), [("recvmmsg", "compiled"), ("recvmsg", "numpy")])
 def test_lpf1_blocks_equal_the_profile_by_profile_path(
-    receive: str, monkeypatch: pytest.MonkeyPatch
+    receive: str, decode: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    # The blocks' integer points scaled by the compiled kernel (numba, in the test install)
+    # or by numpy: both the per-datagram parser's values, bit for bit.
+    monkeypatch.setattr(jit, "enabled", decode == "compiled")
+    assert jit.available() == (decode == "compiled")
     grams = _lpf1_stream()
     fast = _spy(monkeypatch, lpf1_block, "decode_run")
     a = Lpf1UdpSensor(sensor_id=7, bind_host="127.0.0.1", port=0)
