@@ -76,13 +76,11 @@ def measure_hot_path(
     """CPU time per profile of each step of the worker (us) and the one-core capacity, over
     ``seconds`` of the stream after the first ``WARMUP_S``."""
     seconds += WARMUP_S
-    from wristscan.calib import se3
+    from wristscan.calib import jit, se3
     from wristscan.daemon.service.pipeline import AlignmentSetup, Pipeline, PipelineSettings
     from wristscan.daemon.sync.pairing import Pairer, PairerConfig
     from wristscan.drivers.records import RobotState
     from wristscan.drivers.sensor_lpf1 import Lpf1UdpSensor
-
-    from wristscan.calib import jit
 
     jit.warm()  # as Pipeline.start does: compiled (or loaded) before the stream, not in it
     n_prof = int(rate_hz * seconds)
