@@ -96,8 +96,12 @@ def plan(grams: Datagrams, headers: NDArray[Any], sensor_id: int | None) -> list
     equal that first datagram's, its length is the same and its CRC-32 matches: exactly what
     ``parse_message`` and ``decode_profile`` accept, restricted to one shape."""
     k = len(grams)
-    words = headers.view(np.uint64).reshape(k, HEADER_LEN // 8)
+    words = _header_words(grams, headers)
     key = words & (_MASK_ANY_ID if sensor_id is None else _MASK_ONE_ID)
+    if _uniform(grams, headers, words, key, sensor_id):
+        crc_ok = _crc_ok(grams, None)
+        if crc_ok.all():  # the usual pass: one shape, every datagram whole
+            return [Run(0, k, True)]
     shape = np.full(k, -1, np.int64)  # index of the shape's first datagram; -1: per datagram
     i, found, whole = 0, 0, False
     while True:
@@ -125,12 +129,40 @@ def plan(grams: Datagrams, headers: NDArray[Any], sensor_id: int | None) -> list
     return [Run(a, b, bool(shape[a] >= 0)) for a, b in itertools.pairwise(bounds)]
 
 
+def _uniform(
+    grams: Datagrams, headers: NDArray[Any], words: NDArray[np.uint64], key: Any, sid: int | None
+) -> bool:
+    """Every datagram of the pass has the first one's shape and length and is a whole PROFILE
+    message as ``decode_profile`` takes it (CRCs aside): :func:`plan`'s usual case, told in a
+    few whole-array steps."""
+    return bool(
+        (key == key[0]).all()
+        and (grams.lengths == grams.lengths[0]).all()
+        and (words[:, 2] < _COUNTER_LIMIT).all()
+        and _profile_header(grams, headers, 0, sid)
+    )
+
+
 def read_headers(grams: Datagrams) -> NDArray[Any]:
     """Every datagram's first 72 bytes as a :data:`HEADER_DTYPE` record (whatever they hold:
-    :func:`plan` checks them)."""
+    :func:`plan` checks them): a view of the buffer when the datagrams lie in consecutive rows
+    (the usual pass), else a copy."""
     rows = (len(grams.buf) - HEADER_LEN) // grams.stride + 1
     table = np.ndarray((rows,), HEADER_DTYPE, grams.buf, 0, (grams.stride,))
+    first, k = int(grams.rows[0]), len(grams)
+    if int(grams.rows[-1]) - first == k - 1:
+        return table[first : first + k]
     return table[grams.rows]
+
+
+def _header_words(grams: Datagrams, headers: NDArray[Any]) -> NDArray[np.uint64]:
+    """The nine 64-bit words of each header, (k, 9): a view of ``headers``."""
+    k = headers.shape[0]
+    if headers.flags.c_contiguous:
+        return headers.view(np.uint64).reshape(k, HEADER_LEN // 8)
+    # A view of the buffer's rows (read_headers' consecutive case).
+    at = int(grams.rows[0]) * grams.stride
+    return np.ndarray((k, HEADER_LEN // 8), np.uint64, grams.buf, at, (grams.stride, 8))
 
 
 def _profile_header(grams: Datagrams, headers: NDArray[Any], i: int, sensor_id: int | None) -> bool:
@@ -163,11 +195,14 @@ _CRC_RESIDUE = 0x2144DF1C
 and only when the CRC matches (the last four bytes map one to one onto the result)."""
 
 
-def _crc_ok(grams: Datagrams, idx: NDArray[np.intp]) -> NDArray[np.bool_]:
-    """The CRC-32 of datagrams ``idx`` checked (one CRC-32 call each, over the whole
-    datagram: :data:`_CRC_RESIDUE`)."""
+def _crc_ok(grams: Datagrams, idx: NDArray[np.intp] | None) -> NDArray[np.bool_]:
+    """The CRC-32 of datagrams ``idx`` (None: all) checked (one CRC-32 call each, over the
+    whole datagram: :data:`_CRC_RESIDUE`)."""
     view, stride = grams.view, grams.stride
-    rows, lengths = grams.rows[idx].tolist(), grams.lengths[idx].tolist()
+    if idx is None:
+        rows, lengths = grams.rows.tolist(), grams.lengths.tolist()
+    else:
+        rows, lengths = grams.rows[idx].tolist(), grams.lengths[idx].tolist()
     got = [crc32(view[r * stride : r * stride + n]) for r, n in zip(rows, lengths, strict=True)]
     return np.array(got, np.int64) == _CRC_RESIDUE
 
