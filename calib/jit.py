@@ -120,6 +120,10 @@ def _njit(numba: Any, **options: Any) -> Callable[[Callable[..., Any]], Any]:
 
 def _compile(numba: Any) -> dict[str, Callable[..., Any]]:
     """The kernels, jitted lazily (compiled at their first call, cached on disk)."""
+    return {"align_rows": _align_kernel(numba), "scale_codes": _scale_kernel(numba)}
+
+
+def _align_kernel(numba: Any) -> Any:
     import numpy as np
 
     # 'contract' lets a multiply and an add fuse (FMA); no other fast-math licence.
@@ -183,6 +187,12 @@ def _compile(numba: Any) -> dict[str, Callable[..., Any]]:
                         return -1 - (start + r) // 3
         return k // 3
 
+    return align_rows
+
+
+def _scale_kernel(numba: Any) -> Any:
+    import numpy as np
+
     # No fast-math licence at all: the values must be numpy's multiply-then-add, bit for bit.
     exact = _njit(numba, nogil=True, boundscheck=False)
 
@@ -211,4 +221,4 @@ def _compile(numba: Any) -> dict[str, Callable[..., Any]]:
             bad += n - nv
         return bad
 
-    return {"align_rows": align_rows, "scale_codes": scale_codes}
+    return scale_codes

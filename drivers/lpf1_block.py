@@ -224,7 +224,6 @@ def _rows_of(grams: Datagrams, run: Run, offset: int, dtype: np.dtype[Any], n: i
 def decode_run(grams: Datagrams, headers: NDArray[Any], run: Run) -> ProfileBlock:
     """The block of a fast run (every datagram checked by :func:`plan`)."""
     a, b = run.start, run.stop
-    h = headers[a:b]
     h0 = headers[a].item()  # one tuple, in HEADER_DTYPE's order
     flags, n, fmt = h0[4], h0[10], h0[11]
     xs, zs, xo, zo = h0[13:17]
@@ -234,31 +233,11 @@ def decode_run(grams: Datagrams, headers: NDArray[Any], run: Run) -> ProfileBloc
     if flags & 0x02:
         x_raw = _rows_of(grams, run, pos, dt, n)
         pos += n * dt.itemsize
-    z_at = pos
+    z, valid, invalid = _decode_z(grams, run, pos, dt, n, zs, zo, sentinel)
     pos += n * dt.itemsize
     intensity = None
     if flags & 0x01:
         intensity = np.array(_rows_of(grams, run, pos, np.dtype(np.uint8), n))
-    # As lpf1.decode_profile, element by element (same float64 operations, same bits).
-    scale_codes = jit.kernel("scale_codes") if sentinel is not None else None
-    if scale_codes is not None:
-        # Compiled: one pass over the codes where numpy takes five (cast, scale, offset,
-        # compare, negate), read straight from the receive buffer.
-        z = np.empty((b - a, n))
-        valid = np.empty((b - a, n), np.bool_)
-        codes = np.frombuffer(grams.buf, dt, len(grams.buf) // dt.itemsize)
-        starts = (grams.rows[a:b] * grams.stride + z_at) // dt.itemsize
-        scale_codes(codes, starts, zs * 1e-9, zo * 1e-6, sentinel, z, valid)
-        invalid = None
-    elif sentinel is None:
-        z = _rows_of(grams, run, z_at, dt, n).astype(np.float64)
-        invalid = ~np.isfinite(z)
-    else:
-        z_raw = _rows_of(grams, run, z_at, dt, n)
-        invalid = z_raw == sentinel
-        z = z_raw.astype(np.float64)  # exact; then in place (a casting multiply is slower)
-        z *= zs * 1e-9
-        z += zo * 1e-6
     if x_raw is None:
         x = _x_grid(n, xs, xo)
     elif sentinel is None:
@@ -269,6 +248,7 @@ def decode_run(grams: Datagrams, headers: NDArray[Any], run: Run) -> ProfileBloc
         x = x_raw.astype(np.float64) * (xs * 1e-9) + xo * 1e-6
         np.copyto(x, np.nan, where=x_bad)
     if invalid is None:  # compiled: z and valid done but for explicit x's invalid points
+        assert valid is not None
         if x_raw is not None:
             valid &= ~x_bad
             np.copyto(z, np.nan, where=x_bad)
@@ -281,16 +261,19 @@ def decode_run(grams: Datagrams, headers: NDArray[Any], run: Run) -> ProfileBloc
         if bad.size:
             z.reshape(-1)[bad] = np.nan
         valid = ~invalid
-    ev = (h["flags"] & 0x04).astype(np.bool_)
+    # The per-profile fields from the headers' first five 64-bit words (magic .. flags,
+    # payload_len and sensor_id, frame_counter, timestamp_ns, encoder), one copy for all.
+    w = np.array(_header_words(grams, headers)[a:b, :5].T, order="C")
+    ev = (w[0] & _ENCODER_VALID_BIT) != 0
     encoder = None
     if ev.all():
-        encoder = h["encoder"].astype(np.int64)
+        encoder = w[4].view(np.int64)
     elif ev.any():
-        encoder = np.where(ev, h["encoder"], 0).astype(np.int64)
+        encoder = np.where(ev, w[4].view(np.int64), 0)
     return ProfileBlock(
-        sensor_id=h["sensor_id"].astype(np.int64),
-        frame_counter=h["frame_counter"].astype(np.int64),
-        sensor_time_ns=h["timestamp_ns"].astype(np.int64),
+        sensor_id=(w[1] >> np.uint64(32)).view(np.int64),
+        frame_counter=w[2].view(np.int64),
+        sensor_time_ns=w[3].view(np.int64),
         host_time_ns=grams.stamps[a:b].copy(),
         y=x,
         z=z,
@@ -299,3 +282,41 @@ def decode_run(grams: Datagrams, headers: NDArray[Any], run: Run) -> ProfileBloc
         encoder=encoder,
         encoder_valid=None if encoder is None else ev,
     )
+
+
+_ENCODER_VALID_BIT = np.uint64(0x04 << 56)
+"""ENCODER_VALID in the first header word (``flags`` is its top byte)."""
+
+
+def _decode_z(
+    grams: Datagrams,
+    run: Run,
+    at: int,
+    dt: np.dtype[Any],
+    n: int,
+    zs: int,
+    zo: int,
+    sentinel: int | None,
+) -> tuple[NDArray[np.float64], NDArray[np.bool_] | None, NDArray[np.bool_] | None]:
+    """The run's z (P, n) in metres as ``decode_profile`` gives them, and either ``valid``
+    (compiled) or ``invalid`` (numpy; z not yet NaN there)."""
+    a, b = run.start, run.stop
+    scale_codes = jit.kernel("scale_codes") if sentinel is not None else None
+    if scale_codes is not None:
+        # Compiled: one call where numpy takes five passes (cast, scale, offset, compare,
+        # negate), read straight from the receive buffer.
+        z = np.empty((b - a, n))
+        valid = np.empty((b - a, n), np.bool_)
+        codes = np.frombuffer(grams.buf, dt, len(grams.buf) // dt.itemsize)
+        starts = (grams.rows[a:b] * grams.stride + at) // dt.itemsize
+        scale_codes(codes, starts, zs * 1e-9, zo * 1e-6, sentinel, z, valid)
+        return z, valid, None
+    z_raw = _rows_of(grams, run, at, dt, n)
+    if sentinel is None:
+        z = z_raw.astype(np.float64)
+        return z, None, ~np.isfinite(z)
+    invalid = z_raw == sentinel
+    z = z_raw.astype(np.float64)  # exact; then in place (a casting multiply is slower)
+    z *= zs * 1e-9
+    z += zo * 1e-6
+    return z, None, invalid
