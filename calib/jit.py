@@ -96,11 +96,19 @@ def _exercise(ks: dict[str, Callable[..., Any]]) -> None:
         np.zeros((1, 2)), np.zeros((1, 2)), np.ones((1, 2), np.bool_), True,
         np.zeros((1, 3, 3), np.float32), out,
     )  # fmt: skip
+    one = np.zeros(1, np.int64)
     for dt in (np.int16, np.int32):
         ks["scale_codes"](
-            np.zeros(4, dt), np.zeros(1, np.int64), 1e-9, 0.0, -1, np.empty((1, 2)),
-            np.empty((1, 2), np.bool_),
-        )  # fmt: skip
+            np.zeros(4, dt), one, 4, 0, 1e-9, 0.0, -1, np.empty((1, 2)), np.empty((1, 2), np.bool_)
+        )
+    words = np.zeros(9, np.uint64)
+    # recvmmsg's fields are strided views of its structured arrays (numba's layout "A").
+    i64, u32, u64 = (np.zeros(4, t)[::2] for t in (np.int64, np.uint32, np.uint64))
+    ks["mmsg_read_back"](
+        u32, i64, u64, i64, i64, np.int64(0), 32, True, 0, 0, np.empty(2, np.int64),
+        np.empty(2, np.int64),
+    )  # fmt: skip
+    ks["same_headers"](words, one, 9, words, one, np.uint64(1), np.empty((5, 1), np.uint64))
 
 
 def _njit(numba: Any, **options: Any) -> Callable[[Callable[..., Any]], Any]:
@@ -120,7 +128,7 @@ def _njit(numba: Any, **options: Any) -> Callable[[Callable[..., Any]], Any]:
 
 def _compile(numba: Any) -> dict[str, Callable[..., Any]]:
     """The kernels, jitted lazily (compiled at their first call, cached on disk)."""
-    return {"align_rows": _align_kernel(numba), "scale_codes": _scale_kernel(numba)}
+    return {"align_rows": _align_kernel(numba), **_decode_kernels(numba)}
 
 
 def _align_kernel(numba: Any) -> Any:
@@ -190,22 +198,24 @@ def _align_kernel(numba: Any) -> Any:
     return align_rows
 
 
-def _scale_kernel(numba: Any) -> Any:
+def _decode_kernels(numba: Any) -> dict[str, Any]:
     import numpy as np
 
     # No fast-math licence at all: the values must be numpy's multiply-then-add, bit for bit.
     exact = _njit(numba, nogil=True, boundscheck=False)
 
     @exact
-    def scale_codes(codes, starts, scale, offset, sentinel, z, valid):  # type: ignore[no-untyped-def]
+    def scale_codes(codes, rows, stride, at, scale, offset, sentinel, z, valid):  # type: ignore[no-untyped-def]
         """Integer point codes to metres for P profiles in one call: ``z[i, j] =
-        float64(codes[starts[i] + j]) * scale + offset`` (``codes`` 1-D int16/int32, e.g. a
-        receive buffer seen as such; ``z`` (P, N) float64), NaN and ``valid`` False where the
-        code is ``sentinel``. Returns the number of invalid points."""
+        float64(codes[rows[i] * stride + at + j]) * scale + offset`` (``codes`` 1-D
+        int16/int32, e.g. a receive buffer seen as such, ``stride`` and ``at`` counted in
+        codes; ``z`` (P, N) float64), NaN and ``valid`` False where the code is ``sentinel``.
+        Returns the number of invalid points."""
         p, n = z.shape
         bad = 0
         for i in range(p):
-            src = codes[starts[i] : starts[i] + n]  # a contiguous slice: the loops vectorise
+            s = rows[i] * stride + at
+            src = codes[s : s + n]  # a contiguous slice: the loops vectorise
             zi, vi = z[i], valid[i]
             for j in range(n):
                 zi[j] = np.float64(src[j]) * scale + offset
@@ -221,4 +231,49 @@ def _scale_kernel(numba: Any) -> Any:
             bad += n - nv
         return bad
 
-    return scale_codes
+    @exact
+    def same_headers(words, rows, stride, mask, lengths, limit, out):  # type: ignore[no-untyped-def]
+        """Datagrams with one header: ``words`` the receive buffer as uint64, datagram i's
+        header at word ``rows[i] * stride``. True when every header equals the first under
+        ``mask`` (its W words), every length the first's and every word 2 is below ``limit``;
+        the headers' first F words are copied into ``out`` (F, P) meanwhile. False at the
+        first datagram that differs."""
+        k = rows.shape[0]
+        nw, nf = mask.shape[0], out.shape[0]
+        s0 = rows[0] * stride
+        for i in range(k):
+            s = rows[i] * stride
+            if lengths[i] != lengths[0] or words[s + 2] >= limit:
+                return False
+            for w in range(nw):
+                if (words[s + w] ^ words[s0 + w]) & mask[w]:
+                    return False
+            for f in range(nf):
+                out[f, i] = words[s + f]
+        return True
+
+    @exact
+    def mmsg_read_back(  # type: ignore[no-untyped-def]
+        lens, lt, ctrl_len, sec, nsec, lt_want, ctrl_want, stamped, offset, now, lengths, stamps
+    ):
+        """``recvmmsg``'s results for the first P = ``lengths.shape[0]`` datagrams: their
+        lengths and total bytes; their receipt times ``sec * 10**9 + nsec - offset``, never
+        after ``now``, when ``stamped`` and every datagram's control message is a timestamp
+        (``lt == lt_want``, ``ctrl_len >= ctrl_want``), else ``now``."""
+        n = lengths.shape[0]
+        total = 0
+        for i in range(n):
+            lengths[i] = lens[i]
+            total += lens[i]
+            if lt[i] != lt_want or ctrl_len[i] < ctrl_want:
+                stamped = False
+        for i in range(n):
+            t = sec[i] * 1_000_000_000 + nsec[i] - offset if stamped else now
+            stamps[i] = min(t, now)
+        return total
+
+    return {
+        "scale_codes": scale_codes,
+        "same_headers": same_headers,
+        "mmsg_read_back": mmsg_read_back,
+    }

@@ -28,6 +28,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from wristscan.calib import jit
+
 __all__ = ["ROW_BYTES", "MmsgReceiver", "available"]
 
 ROW_BYTES = 65536
@@ -147,6 +149,8 @@ class MmsgReceiver:
         hdr["iovlen"] = 1
         hdr["control"] = self._ctrl.ctypes.data + k * np.uint64(_CMSG_BYTES)
         self._hdr = hdr
+        self.row_numbers = np.arange(self.rows, dtype=np.int64)
+        """0 .. rows - 1, for the passes' row arrays (views: not to be written)."""
         self._hdr_ptr = ctypes.c_void_p(hdr.ctypes.data)
         # The fields read or reset at every call, as views made once (a structured array's
         # field lookup costs more than the rows' values).
@@ -168,6 +172,28 @@ class MmsgReceiver:
                 return 0
             raise OSError(err, os.strerror(err))
         return n
+
+    def read_back(
+        self, n: int, now_ns: int, offset_ns: int | None
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64], int]:
+        """The first ``n`` datagrams' lengths, receipt times and total bytes: the kernel's
+        stamps on the monotonic clock (``realtime - offset_ns``, never after ``now_ns``) when
+        ``offset_ns`` is given and every datagram has one, else ``now_ns``. One compiled call
+        (:mod:`wristscan.calib.jit`) where numpy takes a dozen."""
+        kern = jit.kernel("mmsg_read_back")
+        if kern is None:
+            lengths = self.lengths(n)
+            real = None if offset_ns is None else self.realtime_stamps(n)
+            if real is None or offset_ns is None:
+                return lengths, np.full(n, now_ns, np.int64), int(lengths.sum())
+            return lengths, np.minimum(real - offset_ns, now_ns), int(lengths.sum())
+        lengths = np.empty(n, np.int64)
+        stamps = np.empty(n, np.int64)
+        stamped = offset_ns is not None
+        total = kern(self._len, self._ctrl_lt, self._controllen, self._sec, self._nsec,
+                     _LEVEL_TYPE, _CMSG_BYTES, stamped, offset_ns or 0, now_ns, lengths,
+                     stamps)  # fmt: skip
+        return lengths, stamps, int(total)
 
     def lengths(self, n: int) -> NDArray[np.int64]:
         return self._len[:n].astype(np.int64)

@@ -444,22 +444,16 @@ class UdpProfileSensor(SensorCore):
         if n == 0:
             return None, 0, False
         now = time.monotonic_ns()
-        lengths = rx.lengths(n)
-        self.counters.bytes += int(lengths.sum())
-        rows = np.arange(n, dtype=np.int64)
+        offset = _offset_at(now) if self.kernel_stamps else None
+        lengths, stamps, nbytes = rx.read_back(n, now, offset)
+        self.counters.bytes += nbytes
+        self._last_rx_ns = int(stamps[-1])
+        rows = rx.row_numbers[:n]
         if self._source_ip is not None:
             mine = rx.sources(n) == np.frombuffer(socket.inet_aton(self._source_ip), np.uint32)[0]
             if not mine.all():
                 self.stats["foreign_source"] += int(n - mine.sum())
-                rows, lengths = rows[mine], lengths[mine]
-        real = rx.realtime_stamps(n) if self.kernel_stamps else None
-        if real is None:
-            stamps = np.full(n, now, np.int64)
-        else:
-            stamps = np.minimum(real - _offset_at(now), now)
-        self._last_rx_ns = int(stamps[-1])
-        if rows.shape[0] < n:
-            stamps = stamps[rows]
+                rows, lengths, stamps = rows[mine], lengths[mine], stamps[mine]
         if rows.shape[0] == 0:
             return None, n, n == want
         grams = Datagrams(rx.buf, memoryview(rx.buf), _mmsg.ROW_BYTES, rows, lengths, stamps)

@@ -32,7 +32,7 @@ from wristscan.drivers.records import ProfileBlock
 if TYPE_CHECKING:
     from wristscan.drivers._udp import Datagrams
 
-__all__ = ["HEADER_DTYPE", "Run", "decode_run", "plan", "read_headers"]
+__all__ = ["HEADER_DTYPE", "Run", "decode_run", "decode_uniform", "plan", "read_headers"]
 
 HEADER_DTYPE = np.dtype(
     [
@@ -261,9 +261,28 @@ def decode_run(grams: Datagrams, headers: NDArray[Any], run: Run) -> ProfileBloc
         if bad.size:
             z.reshape(-1)[bad] = np.nan
         valid = ~invalid
-    # The per-profile fields from the headers' first five 64-bit words (magic .. flags,
-    # payload_len and sensor_id, frame_counter, timestamp_ns, encoder), one copy for all.
-    w = np.array(_header_words(grams, headers)[a:b, :5].T, order="C")
+    # The per-profile fields from the headers' first five 64-bit words, one copy for all.
+    w = np.array(_header_words(grams, headers)[a:b, :_FIELD_WORDS].T, order="C")
+    return _block(grams, w, a, b, x, z, valid, intensity)
+
+
+_FIELD_WORDS = 5
+"""The header words with per-profile fields: magic .. flags (ENCODER_VALID), payload_len and
+sensor_id, frame_counter, timestamp_ns, encoder."""
+
+
+def _block(
+    grams: Datagrams,
+    w: NDArray[np.uint64],
+    a: int,
+    b: int,
+    x: NDArray[np.float64],
+    z: NDArray[np.float64],
+    valid: NDArray[np.bool_],
+    intensity: NDArray[np.uint8] | None,
+) -> ProfileBlock:
+    """The block of datagrams ``a .. b - 1`` (``w``: their :data:`_FIELD_WORDS` header words,
+    (5, P))."""
     ev = (w[0] & _ENCODER_VALID_BIT) != 0
     encoder = None
     if ev.all():
@@ -282,6 +301,43 @@ def decode_run(grams: Datagrams, headers: NDArray[Any], run: Run) -> ProfileBloc
         encoder=encoder,
         encoder_valid=None if encoder is None else ev,
     )
+
+
+def decode_uniform(
+    grams: Datagrams, headers: NDArray[Any], sensor_id: int | None
+) -> ProfileBlock | None:
+    """The usual pass in two compiled calls (:mod:`wristscan.calib.jit`): every datagram a
+    whole PROFILE message of the first one's shape with integer points on a uniform grid, all
+    CRCs right. None otherwise, or without the compiled kernels: then :func:`plan` and
+    :func:`decode_run`, which give the same block (tests/drivers/test_sensor_blocks.py)."""
+    same, scale_codes = jit.kernel("same_headers"), jit.kernel("scale_codes")
+    if same is None or scale_codes is None or not _profile_header(grams, headers, 0, sensor_id):
+        return None
+    h0 = headers[0].item()
+    flags, n, fmt = h0[4], h0[10], h0[11]
+    xs, zs, xo, zo = h0[13:17]
+    dt, sentinel = _FORMAT[fmt]
+    if sentinel is None or flags & 0x02:  # float points or explicit x: numpy's path
+        return None
+    k = len(grams)
+    w = np.empty((_FIELD_WORDS, k), np.uint64)
+    words = np.frombuffer(grams.buf, np.uint64, len(grams.buf) // 8)
+    mask = _MASK_ANY_ID if sensor_id is None else _MASK_ONE_ID
+    if not same(words, grams.rows, grams.stride // 8, mask, grams.lengths, _COUNTER_LIMIT, w):
+        return None
+    if not _crc_ok(grams, None).all():
+        return None
+    z = np.empty((k, n))
+    valid = np.empty((k, n), np.bool_)
+    codes = np.frombuffer(grams.buf, dt, len(grams.buf) // dt.itemsize)
+    size = dt.itemsize
+    scale_codes(codes, grams.rows, grams.stride // size, HEADER_LEN // size, zs * 1e-9,
+                zo * 1e-6, sentinel, z, valid)  # fmt: skip
+    intensity = None
+    if flags & 0x01:
+        at = HEADER_LEN + n * size
+        intensity = np.array(_rows_of(grams, Run(0, k, True), at, np.dtype(np.uint8), n))
+    return _block(grams, w, 0, k, _x_grid(n, xs, xo), z, valid, intensity)
 
 
 _ENCODER_VALID_BIT = np.uint64(0x04 << 56)
@@ -308,8 +364,10 @@ def _decode_z(
         z = np.empty((b - a, n))
         valid = np.empty((b - a, n), np.bool_)
         codes = np.frombuffer(grams.buf, dt, len(grams.buf) // dt.itemsize)
-        starts = (grams.rows[a:b] * grams.stride + at) // dt.itemsize
-        scale_codes(codes, starts, zs * 1e-9, zo * 1e-6, sentinel, z, valid)
+        size = dt.itemsize
+        rows = grams.rows[a:b]
+        scale_codes(codes, rows, grams.stride // size, at // size, zs * 1e-9, zo * 1e-6,
+                    sentinel, z, valid)  # fmt: skip
         return z, valid, None
     z_raw = _rows_of(grams, run, at, dt, n)
     if sentinel is None:

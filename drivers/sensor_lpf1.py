@@ -134,6 +134,11 @@ class Lpf1UdpSensor(UdpProfileSensor):
         block each (:mod:`wristscan.drivers.lpf1_block`), the others one by one; the blocks
         in arrival order."""
         headers = lpf1_block.read_headers(grams)
+        block = lpf1_block.decode_uniform(grams, headers, self.expected_sensor_id)
+        if block is not None:  # the usual pass
+            kept = self._deliver_block(block)
+            self._log_raw(grams, len(grams))
+            return [] if kept is None else [kept]
         out: list[ProfileBlock] = []
         records: list[Profile] = []
         for run in lpf1_block.plan(grams, headers, self.expected_sensor_id):
