@@ -951,8 +951,7 @@ def pair_ticks(st: TickStreams, blocks: bool, warm_ns: int = 500 * MS) -> dict[s
     cpu = counted = 0
     n_interp = n_feed = 0
     for tick, pe, re in zip(st.ticks.tolist(), pi.tolist(), ri.tolist(), strict=True):
-        for s in st.states[b:re]:
-            pairer.add_robot_state(s)
+        pairer.add_robot_states(st.states[b:re])
         b = re
         block = _stream_block(st, a, pe)
         recs = [] if blocks else [block.profile(k) for k in range(pe - a)]
@@ -1008,7 +1007,8 @@ def figure_block_pairing(
 
 def tick_cpu_us(st: TickStreams, warm_ns: int = 500 * MS) -> float:
     """Thread CPU per 10 ms tick of everything the pairer does in it (the tick's robot states
-    added, its profiles as one block, the poll with its batches built), after ``warm_ns``."""
+    added at once, its profiles as one block, the poll with its batches built), after
+    ``warm_ns``."""
     pairer = Pairer(pairer_config(SENSOR_LATENCY_NS))
     pi = np.searchsorted(st.arrive, st.ticks, side="right")
     ri = np.searchsorted(st.state_arrive, st.ticks, side="right")
@@ -1016,8 +1016,7 @@ def tick_cpu_us(st: TickStreams, warm_ns: int = 500 * MS) -> float:
     for tick, pe, re in zip(st.ticks.tolist(), pi.tolist(), ri.tolist(), strict=True):
         block = _stream_block(st, a, pe)
         t = time.thread_time_ns()
-        for s in st.states[b:re]:
-            pairer.add_robot_state(s)
+        pairer.add_robot_states(st.states[b:re])
         if pe > a:
             pairer.add_block(block)
         pairer.poll()

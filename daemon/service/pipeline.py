@@ -381,8 +381,8 @@ class Pipeline:
         self._states_arrived.clear()
         robot, table = self._robot_q, self._table_q
         with self._cpu["pair"]:
-            for _ in range(len(robot)):
-                pairer.add_robot_state(robot.popleft())
+            if robot:
+                pairer.add_robot_states([robot.popleft() for _ in range(len(robot))])
             for _ in range(len(table)):
                 pairer.add_table_state(table.popleft())
             if profiles_too:

@@ -21,6 +21,7 @@ clock, so interpolation does not depend on the clock fit); memory is fixed at co
 
 from __future__ import annotations
 
+import itertools
 import math
 from enum import IntEnum
 
@@ -256,6 +257,22 @@ class RobotStateBuffer:
         row[:6] = q
         row[6:] = tcp_pose
         buf._commit(i, t)
+        return True
+
+    def append_many(self, ts: list[int], qs: list[FloatArray], poses: list[FloatArray]) -> bool:
+        """:meth:`append` of samples whose times increase past the last one (a tick's), at once:
+        True; False (nothing added) otherwise, or when they need the room made first."""
+        buf, n = self._buf, len(ts)
+        i = buf._i1
+        if i + n > buf._t.shape[0] or not all(a < b for a, b in itertools.pairwise(ts)):
+            return False
+        if i > buf._i0 and ts[0] <= buf._t[i - 1]:
+            return False
+        buf._v[i : i + n, :6] = qs
+        buf._v[i : i + n, 6:] = poses
+        buf._t[i : i + n] = ts
+        buf._i1 = i + n
+        buf._i0 = max(buf._i0, buf._i1 - buf.capacity)
         return True
 
     def interpolate(self, t_ns: ArrayLike) -> tuple[FloatArray, NDArray[np.bool_], ReasonArray]:

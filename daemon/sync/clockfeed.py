@@ -17,10 +17,12 @@ floating-point rounding (tested). Anything unusual (device time not increasing, 
 a locked line by more than the re-anchor tolerance, a pending step-back suspicion, a stopped
 clock, an epoch to open) goes through ``feed``, and the fast path is tried again after it (a
 pending suspicion keeps the following arrivals on ``feed`` until it is settled).
+:func:`feed_lists` is the same for a few arrivals given as lists (a tick's robot states).
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 from typing import TYPE_CHECKING
 
@@ -30,7 +32,7 @@ from numpy.typing import NDArray
 if TYPE_CHECKING:
     from wristscan.daemon.sync.clockmap import ClockMapper
 
-__all__ = ["feed_block"]
+__all__ = ["feed_block", "feed_lists"]
 
 IntArray = NDArray[np.int64]
 FloatArray = NDArray[np.float64]
@@ -40,6 +42,9 @@ _LOOKAHEAD = 4096
 # Blocks of at most this many arrivals take the scalar path (:func:`_small_segment`): a few us
 # of Python per arrival cost less there than the ~30 numpy calls of :func:`_fast_segment`.
 _SMALL = 48
+# Blocks spanning fewer buckets than this take their bucket minima one bucket at a time (a 10 ms
+# tick spans one or two 10 ms buckets): fewer numpy calls than the segmented reductions.
+_FEW_BUCKETS = 4
 
 
 def feed_block(cm: ClockMapper, xs: IntArray, ys: IntArray) -> IntArray:
@@ -60,6 +65,22 @@ def feed_block(cm: ClockMapper, xs: IntArray, ys: IntArray) -> IntArray:
         out[i] = cm.feed(int(xs[i]), int(ys[i]))
         i += 1
     return out
+
+
+def feed_lists(cm: ClockMapper, xs: list[int], ys: list[int]) -> None:
+    """:func:`feed_block` for arrivals given as lists of ints (a tick's robot states), without
+    the epochs: a few arrivals take the scalar path with no array made (the same steps)."""
+    n = len(xs)
+    i = 0
+    while i < n:
+        j = _small_segment(cm, xs, ys, i) if n <= _SMALL else -1
+        if j < 0:
+            feed_block(cm, np.asarray(xs[i:], dtype=np.int64), np.asarray(ys[i:], dtype=np.int64))
+            return
+        if j == i:
+            cm.feed(xs[i], ys[i])  # unusual: as feed_block does
+            j += 1
+        i = j
 
 
 def _fast_segment(cm: ClockMapper, xs: IntArray, ys: IntArray, i: int) -> int:
@@ -146,8 +167,16 @@ def _small_segment(cm: ClockMapper, xs: list[int], ys: list[int], i: int) -> int
     cm._recent.extend(zip(xs[i:end], ys[i:end], strict=True))
     cm._x_last = prev
     bucket = cfg.bucket_ns
-    for dxi, dx, r in pts:
-        _bucket_point(cm, dxi // bucket, dx, r, d)
+    # Each bucket's lowest point (the first of equals), then as _add does for one arrival.
+    ob, ox, o_r, og = pts[0][0] // bucket, pts[0][1], pts[0][2], pts[0][2] - d * pts[0][1]
+    for dxi, dx, r in pts[1:]:
+        b, g = dxi // bucket, r - d * dx
+        if b != ob:
+            _bucket_point(cm, ob, ox, o_r, d)
+            ob, ox, o_r, og = b, dx, r, g
+        elif g < og:
+            ox, o_r, og = dx, r, g
+    _bucket_point(cm, ob, ox, o_r, d)
     if refit:
         cm._refit()
     return end
@@ -180,11 +209,15 @@ def _add_many(
     bucket = cm.config.bucket_ns
     g = r - d * dx
     b_first, b_last = int(dxi[0]) // bucket, int(dxi[-1]) // bucket
-    if b_first == b_last:
-        # One bucket (a tick shorter than a bucket): its lowest point (the first of equals),
-        # then as _add does for one arrival.
-        k = int(g.argmin())
-        _bucket_point(cm, b_first, float(dx[k]), float(r[k]), d)
+    if b_last - b_first < _FEW_BUCKETS:
+        # A tick spans one bucket or a few: the lowest point of each (the first of equals),
+        # then as _add does for one arrival. (dxi increases: a bucket's arrivals are a run.)
+        edges = [b * bucket for b in range(b_first + 1, b_last + 1)]
+        cuts = [0, *np.searchsorted(dxi, edges).tolist(), m] if edges else [0, m]
+        for bk, (s0, s1) in enumerate(itertools.pairwise(cuts), start=b_first):
+            if s1 > s0:
+                k = s0 + int(g[s0:s1].argmin())
+                _bucket_point(cm, bk, float(dx[k]), float(r[k]), d)
         return
     b = dxi // bucket
     starts = np.flatnonzero(b[1:] != b[:-1]) + 1

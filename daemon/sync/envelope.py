@@ -33,6 +33,8 @@ _CHECK_EVERY = 3
 # A warm start brackets the previous slope by this much (2 ppm: successive fits of a window
 # differ by far less; the edges at the quartiles by about that).
 _WARM_HALF_WIDTH = 2e-6
+# Once pruned to this many points or fewer, the search goes on in Python floats.
+_FEW_POINTS = 16
 
 
 @dataclass(frozen=True, slots=True)
@@ -67,6 +69,7 @@ def support_slope(
     hi: float,
     guess: float | None = None,
     span: float | None = None,
+    ends: tuple[FloatArray, FloatArray] | None = None,
 ) -> float:
     """Slope of the highest line at ``x_e`` lying below all points ``(X, R)``.
 
@@ -76,23 +79,33 @@ def support_slope(
     near the answer (the previous fit's); when ``guess +- _WARM_HALF_WIDTH`` brackets the
     answer, the search starts there with the points pruned at once (same edge, a third of the
     passes over the whole window). ``span``: ``X.max() - X.min()`` when the caller has it.
+    ``ends``: ``R - a X`` and ``R - b X`` at the ends ``a``, ``b`` of the warm bracket
+    (:func:`warm_ends`) when the caller has them (several searches with one guess).
     """
-    if span is None:
-        span = float(X.max() - X.min())
     pruned = False
     if guess is not None:
         a, b = max(lo, guess - _WARM_HALF_WIDTH), min(hi, guess + _WARM_HALF_WIDTH)
-        Ga = R - a * X
+        Ga, Gb = ends if ends is not None else (R - a * X, None)
         ia = int(Ga.argmin())
-        if a < b and X[ia] <= x_e and X[int((R - b * X).argmin())] > x_e:
-            lo, hi = a, b
-            keep = Ga - Ga[ia] <= (hi - lo) * span + 1.0  # as the pruning below, at slope lo
-            X, R = X[keep], R[keep]
-            pruned = True
+        if a < b and X[ia] <= x_e:
+            Gb = R - b * X if Gb is None else Gb
+            if X[int(Gb.argmin())] > x_e:
+                lo, hi = a, b
+                # A point higher than the active point ia by more than 1 ns at both ends is
+                # higher than it all along (the difference of two lines is linear in the slope;
+                # rounding is far below 1 ns): never the lowest at any slope evaluated from
+                # here, so dropping it changes no result. Leaves ~40 % of a full window.
+                keep = Ga <= Ga[ia] + 1.0
+                keep |= Gb <= Gb[ia] + 1.0
+                X, R = X[keep], R[keep]
+                pruned = True
+                if X.shape[0] <= _FEW_POINTS:
+                    return _search_lists(X.tolist(), R.tolist(), x_e, lo, hi, 0)
     il = ir = -1  # active points at lo and hi once pruned
+    G = np.empty_like(X)  # R - d X, computed in place (the same values, no allocation)
     for it in range(_BISECT_ITERATIONS):
         d = 0.5 * (lo + hi)
-        G = R - d * X
+        np.subtract(R, np.multiply(X, d, out=G), out=G)
         i = int(G.argmin())
         if X[i] > x_e:
             hi, ir = d, i
@@ -102,22 +115,76 @@ def support_slope(
             # Only points within (hi - lo) * span of the envelope at slope d (an end of the new
             # interval) can be active anywhere in [lo, hi]: drop the rest, the remaining
             # halvings get cheap.
+            span = float(X.max() - X.min()) if span is None else span
             keep = G - G[i] <= (hi - lo) * span + 1.0
             X, R = X[keep], R[keep]
+            if X.shape[0] <= _FEW_POINTS:
+                return _search_lists(X.tolist(), R.tolist(), x_e, lo, hi, it + 1)
+            G = np.empty_like(X)
             il = ir = -1
             pruned = True
         elif pruned and il >= 0 and ir >= 0 and it % _CHECK_EVERY == 0:
             # Done once the chord of the two active points is a supporting line: it touches the
             # envelope on both sides of x_e, so it is the edge the halvings converge to (they
             # take ~40 steps; the edge is usually isolated after ~15).
-            s = float((R[ir] - R[il]) / (X[ir] - X[il]))
-            if lo <= s <= hi and float((R - s * X).min()) >= float(R[il] - s * X[il]) - 1.0:
-                return s
+            xl, rl = float(X[il]), float(R[il])
+            s = (float(R[ir]) - rl) / (float(X[ir]) - xl)
+            if lo <= s <= hi:
+                np.subtract(R, np.multiply(X, s, out=G), out=G)
+                if float(G.min()) >= rl - s * xl - 1.0:
+                    return s
     # The two active points of the final interval give the edge exactly.
     il = int((R - lo * X).argmin())
     ir = int((R - hi * X).argmin())
     if X[ir] > X[il]:
         exact = float((R[ir] - R[il]) / (X[ir] - X[il]))
+        if lo - 1e-12 <= exact <= hi + 1e-12:
+            return exact
+    return 0.5 * (lo + hi)
+
+
+def warm_ends(
+    X: FloatArray, R: FloatArray, lo: float, hi: float, guess: float
+) -> tuple[FloatArray, FloatArray]:
+    """``R - a X`` and ``R - b X`` at the ends of :func:`support_slope`'s warm bracket around
+    ``guess`` (its ``ends``; elementwise, so their even and odd halves are the halves')."""
+    a, b = max(lo, guess - _WARM_HALF_WIDTH), min(hi, guess + _WARM_HALF_WIDTH)
+    return R - a * X, R - b * X
+
+
+def _lowest(X: list[float], R: list[float], d: float) -> tuple[int, float]:
+    """The first index of the least ``R - d X`` and that value (``argmin`` in Python floats)."""
+    i, gi = 0, R[0] - d * X[0]
+    for k in range(1, len(X)):
+        g = R[k] - d * X[k]
+        if g < gi:
+            i, gi = k, g
+    return i, gi
+
+
+def _search_lists(
+    X: list[float], R: list[float], x_e: float, lo: float, hi: float, start: int
+) -> float:
+    """The rest of :func:`support_slope`'s search once pruned, from halving ``start`` on, when
+    a few points are left: the same steps in Python floats (the same IEEE operations, the first
+    of equal minima), cheaper than numpy calls on a handful of points."""
+    il = ir = -1
+    for it in range(start, _BISECT_ITERATIONS):
+        d = 0.5 * (lo + hi)
+        i = _lowest(X, R, d)[0]
+        if X[i] > x_e:
+            hi, ir = d, i
+        else:
+            lo, il = d, i
+        if il >= 0 and ir >= 0 and it % _CHECK_EVERY == 0:
+            xl, rl = X[il], R[il]
+            s = (R[ir] - rl) / (X[ir] - xl)
+            if lo <= s <= hi and _lowest(X, R, s)[1] >= rl - s * xl - 1.0:
+                return s
+    il = _lowest(X, R, lo)[0]
+    ir = _lowest(X, R, hi)[0]
+    if X[ir] > X[il]:
+        exact = (R[ir] - R[il]) / (X[ir] - X[il])
         if lo - 1e-12 <= exact <= hi + 1e-12:
             return exact
     return 0.5 * (lo + hi)
@@ -151,8 +218,9 @@ def fit_window(
     # independent half-data estimates; half their difference is of the order of the full
     # estimate's error whatever the delay distribution. Windowed RMS: one split is a noisy
     # scale; old (early, poor) fits drop out.
-    d1 = support_slope(X[0::2], R[0::2], x_e, lo, hi, d)
-    d2 = support_slope(X[1::2], R[1::2], x_e, lo, hi, d)
+    Ga, Gb = warm_ends(X, R, lo, hi, d)  # the four searches from d share their bracket
+    d1 = support_slope(X[0::2], R[0::2], x_e, lo, hi, d, ends=(Ga[0::2], Gb[0::2]))
+    d2 = support_slope(X[1::2], R[1::2], x_e, lo, hi, d, ends=(Ga[1::2], Gb[1::2]))
     v1 = float((R[0::2] - d1 * X[0::2]).min()) + d1 * x_e
     v2 = float((R[1::2] - d2 * X[1::2]).min()) + d2 * x_e
     dv = 0.5 * (v1 - v2)
@@ -174,8 +242,8 @@ def fit_window(
     # not determine the drift, so it stays where it was (a clock's drift changes slowly).
     xq = (x0 + max(f - 0.25, 0.0) * span, x0 + min(f + 0.25, 1.0) * span)
     dq = (
-        support_slope(X, R, xq[0], lo, hi, d, span),
-        support_slope(X, R, xq[1], lo, hi, d, span),
+        support_slope(X, R, xq[0], lo, hi, d, span, (Ga, Gb)),
+        support_slope(X, R, xq[1], lo, hi, d, span, (Ga, Gb)),
     )
     if abs(dq[0] - dq[1]) > max(6.0 * u_slope, 0.01 * cfg.typical_drift):
         ref = line.d if line is not None else pd

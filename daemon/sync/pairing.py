@@ -30,6 +30,7 @@ Not thread-safe: one owner thread adds records and polls.
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import replace
 
 import numpy as np
@@ -37,6 +38,7 @@ from numpy.typing import NDArray
 
 from wristscan.daemon.sync.batch import PairedBatch, concat_batches
 from wristscan.daemon.sync.buffers import Reason, RobotStateBuffer, SampleBuffer, ScalarBuffer
+from wristscan.daemon.sync.clockfeed import feed_lists
 from wristscan.daemon.sync.clockmap import ClockMapper
 from wristscan.daemon.sync.counters import CounterUnwrapper, unwrap_nearest
 from wristscan.daemon.sync.pairconfig import PairerConfig
@@ -264,15 +266,30 @@ class Pairer:
     def add_robot_state(self, state: RobotState) -> None:
         """Add one controller sample (any order relative to profiles)."""
         self.robot_states += 1
-        host = state.host_time_ns
+        x, host = round(state.controller_time_s * 1e9), state.host_time_ns
         if host > self._now:
             self._now = host
-        x = round(state.controller_time_s * 1e9)
         self.robot_clock.feed(x, host)
+        self._append_robot(x, state)
+
+    def add_robot_states(self, states: Sequence[RobotState]) -> None:
+        """:meth:`add_robot_state` for each sample (a tick's, in arrival order), the robot clock
+        fed them at once (:func:`~.clockfeed.feed_lists`: the same fit, to the last bit)."""
+        if not states:
+            return
+        self.robot_states += len(states)
+        hosts = [s.host_time_ns for s in states]
+        xs = [round(s.controller_time_s * 1e9) for s in states]
+        self._now = max(self._now, *hosts)
+        feed_lists(self.robot_clock, xs, hosts)
+        if not self.robot.append_many(xs, [s.q for s in states], [s.tcp_pose for s in states]):
+            for x, state in zip(xs, states, strict=True):
+                self._append_robot(x, state)
+
+    def _append_robot(self, x: int, state: RobotState) -> None:
         last = self.robot.buffer.last_ns
         if last is not None and x < last - self.config.robot_clock.reorder_tolerance_ns:
-            # The controller clock went back (restart): older samples live on another clock.
-            # (A smaller step back is a reordered sample: the buffer refuses it.)
+            # The controller restarted (a smaller step back is a reordered sample: refused).
             logger.warning("robot controller clock went back; robot buffer cleared")
             self.robot.clear()
             self.encoder.clear()
