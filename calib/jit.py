@@ -101,6 +101,8 @@ def _exercise(ks: dict[str, Callable[..., Any]]) -> None:
         ks["scale_codes"](
             np.zeros(4, dt), one, 4, 0, 1e-9, 0.0, -1, np.empty((1, 2)), np.empty((1, 2), np.bool_)
         )
+    six = np.zeros(6)
+    ks["dh_forward"](np.zeros((1, 6)), six, six, six, six, six, np.empty((1, 4, 4)))
     words = np.zeros(9, np.uint64)
     # recvmmsg's fields are strided views of its structured arrays (numba's layout "A").
     i64, u32, u64 = (np.zeros(4, t)[::2] for t in (np.int64, np.uint32, np.uint64))
@@ -128,7 +130,42 @@ def _njit(numba: Any, **options: Any) -> Callable[[Callable[..., Any]], Any]:
 
 def _compile(numba: Any) -> dict[str, Callable[..., Any]]:
     """The kernels, jitted lazily (compiled at their first call, cached on disk)."""
-    return {"align_rows": _align_kernel(numba), **_decode_kernels(numba)}
+    return {
+        "align_rows": _align_kernel(numba),
+        "dh_forward": _kinematics_kernel(numba),
+        **_decode_kernels(numba),
+    }
+
+
+def _kinematics_kernel(numba: Any) -> Any:
+    import math
+
+    @_njit(numba, nogil=True, boundscheck=False)
+    def dh_forward(q, off, ca, sa, a, d, out):  # type: ignore[no-untyped-def]
+        """Forward kinematics of P joint vectors ``q`` (P, 6) into ``out`` (P, 4, 4): the
+        product of the six DH matrices ``Rz(q + off) Tz(d) Tx(a) Rx(alpha)`` (``ca``, ``sa``:
+        cos and sin alpha), pose by pose, the last row kept implicit until written."""
+        for p in range(q.shape[0]):
+            T = out[p]
+            for i in range(6):
+                c, s = math.cos(q[p, i] + off[i]), math.sin(q[p, i] + off[i])
+                # Rows 0-1 of the joint's matrix (rows 2-3: 0, sa, ca, d and 0, 0, 0, 1).
+                r0 = (c, -s * ca[i], s * sa[i], a[i] * c)
+                r1 = (s, c * ca[i], -c * sa[i], a[i] * s)
+                if i == 0:
+                    for col in range(4):
+                        T[0, col], T[1, col] = r0[col], r1[col]
+                    T[2, 0], T[2, 1], T[2, 2], T[2, 3] = 0.0, sa[i], ca[i], d[i]
+                    continue
+                for r in range(3):
+                    t0, t1, t2 = T[r, 0], T[r, 1], T[r, 2]
+                    T[r, 0] = t0 * r0[0] + t1 * r1[0]
+                    T[r, 1] = t0 * r0[1] + t1 * r1[1] + t2 * sa[i]
+                    T[r, 2] = t0 * r0[2] + t1 * r1[2] + t2 * ca[i]
+                    T[r, 3] = t0 * r0[3] + t1 * r1[3] + t2 * d[i] + T[r, 3]
+            T[3, 0], T[3, 1], T[3, 2], T[3, 3] = 0.0, 0.0, 0.0, 1.0
+
+    return dh_forward
 
 
 def _align_kernel(numba: Any) -> Any:

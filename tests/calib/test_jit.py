@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from test_align_rows import poses_near_base
 
-from wristscan.calib import align, jit
+from wristscan.calib import align, jit, kinematics
 
 
 def test_compiled_and_numpy_agree(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -31,6 +31,30 @@ def test_compiled_and_numpy_agree(monkeypatch: pytest.MonkeyPatch) -> None:
     assert np.abs(compiled - plain).max() <= 2.5e-7
 
 
+def test_compiled_forward_kinematics_agrees_and_is_batch_independent(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The pairer's per-tick forward kinematics compiled: numpy's products to rounding, NaN
+    joints give NaN poses, and a pose's bits do not depend on its batch (blocks and records
+    batch profiles differently and must pair them alike)."""
+    rng = np.random.default_rng(8)
+    q = rng.uniform(-np.pi, np.pi, (256, 6))
+    q[5] = np.nan
+    model = kinematics.get_model("ur5e")
+    monkeypatch.setattr(jit, "enabled", True)
+    assert jit.kernel("dh_forward") is not None
+    compiled = kinematics.forward(model, q)
+    alone = np.stack([kinematics.forward(model, q[k]) for k in (0, 7, 255)])
+    shaped = kinematics.forward(model, q[:12].reshape(2, 6, 6))
+    monkeypatch.setattr(jit, "enabled", False)
+    plain = kinematics.forward(model, q)
+    assert np.isnan(compiled[5, :3]).all() and np.isnan(plain[5, :3]).all()
+    ok = np.arange(256) != 5
+    assert np.abs(compiled[ok] - plain[ok]).max() <= 1e-15
+    assert alone.tobytes() == compiled[[0, 7, 255]].tobytes()
+    assert shaped.tobytes() == compiled[:12].reshape(2, 6, 4, 4).tobytes()
+
+
 def test_without_executable_memory_the_numpy_path_runs() -> None:
     """Under systemd's MemoryDenyWriteExecute (here the kernel's own switch for it, prctl
     PR_SET_MDWE, which a process cannot undo) numba cannot run: a warning, then numpy."""
@@ -40,7 +64,7 @@ def test_without_executable_memory_the_numpy_path_runs() -> None:
         libc = ctypes.CDLL(None, use_errno=True)
         assert libc.prctl(65, 1, 0, 0, 0) == 0, ctypes.get_errno()  # PR_SET_MDWE, REFUSE_EXEC_GAIN
         logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(message)s")
-        from wristscan.calib import align, jit
+        from wristscan.calib import align, jit, kinematics
         assert not jit.available()
         poses = np.tile(np.eye(4), (2, 1, 1))
         pts = align.align_rows(np.zeros(3), np.full((2, 3), 0.1), None, poses)
