@@ -101,8 +101,13 @@ def _exercise(ks: dict[str, Callable[..., Any]]) -> None:
         ks["scale_codes"](
             np.zeros(4, dt), one, 4, 0, 1e-9, 0.0, -1, np.empty((1, 2)), np.empty((1, 2), np.bool_)
         )
-    six = np.zeros(6)
-    ks["dh_forward"](np.zeros((1, 6)), six, six, six, six, six, np.empty((1, 4, 4)))
+    ks["counter_gaps"](np.zeros(2, np.uint64), np.uint64(1), np.uint64(1))
+    six, rows = np.zeros(6), np.zeros(1, np.int64)
+    for between in (False, True):
+        ks["dh_forward"](
+            np.zeros((2, 6)), rows, np.zeros(1), between, six, six, six, six, six,
+            np.empty((1, 4, 4)),
+        )  # fmt: skip
     words = np.zeros(9, np.uint64)
     # recvmmsg's fields are strided views of its structured arrays (numba's layout "A").
     i64, u32, u64 = (np.zeros(4, t)[::2] for t in (np.int64, np.uint32, np.uint64))
@@ -140,15 +145,27 @@ def _compile(numba: Any) -> dict[str, Callable[..., Any]]:
 def _kinematics_kernel(numba: Any) -> Any:
     import math
 
+    import numpy as np
+
     @_njit(numba, nogil=True, boundscheck=False)
-    def dh_forward(q, off, ca, sa, a, d, out):  # type: ignore[no-untyped-def]
-        """Forward kinematics of P joint vectors ``q`` (P, 6) into ``out`` (P, 4, 4): the
-        product of the six DH matrices ``Rz(q + off) Tz(d) Tx(a) Rx(alpha)`` (``ca``, ``sa``:
-        cos and sin alpha), pose by pose, the last row kept implicit until written."""
-        for p in range(q.shape[0]):
+    def dh_forward(Q, rows, frac, between, off, ca, sa, a, d, out):  # type: ignore[no-untyped-def]
+        """Forward kinematics into ``out`` (P, 4, 4): of the joint vectors ``Q`` (P, 6), or,
+        ``between``, of ``Q[rows] + (Q[rows + 1] - Q[rows]) * frac`` (``Q`` (n, >= 6) joint
+        samples; numpy's interpolation, bit for bit). Each pose the product of the six DH
+        matrices ``Rz(q + off) Tz(d) Tx(a) Rx(alpha)`` (``ca``, ``sa``: cos and sin alpha),
+        the last row kept implicit until written."""
+        q = np.empty(6)
+        for p in range(out.shape[0]):
+            if between:
+                k, f = rows[p], frac[p]
+                for j in range(6):
+                    q[j] = Q[k, j] + (Q[k + 1, j] - Q[k, j]) * f
+            else:
+                for j in range(6):
+                    q[j] = Q[p, j]
             T = out[p]
             for i in range(6):
-                c, s = math.cos(q[p, i] + off[i]), math.sin(q[p, i] + off[i])
+                c, s = math.cos(q[i] + off[i]), math.sin(q[i] + off[i])
                 # Rows 0-1 of the joint's matrix (rows 2-3: 0, sa, ca, d and 0, 0, 0, 1).
                 r0 = (c, -s * ca[i], s * sa[i], a[i] * c)
                 r1 = (s, c * ca[i], -c * sa[i], a[i] * s)
@@ -309,8 +326,23 @@ def _decode_kernels(numba: Any) -> dict[str, Any]:
             stamps[i] = min(t, now)
         return total
 
+    @exact
+    def counter_gaps(c, mask, max_step):  # type: ignore[no-untyped-def]
+        """Frame counters ``c`` (uint64) that simply continue: each 1 to ``max_step`` after the
+        one before it (differences taken modulo ``mask + 1``). Returns the frames missing
+        between them, or -1 when they do not continue."""
+        one = np.uint64(1)
+        missing = np.uint64(0)
+        for i in range(1, c.shape[0]):
+            step = (c[i] - c[i - 1]) & mask
+            if step - one >= max_step:  # a step of 0 wraps to the top
+                return np.int64(-1)
+            missing += step - one
+        return np.int64(missing)
+
     return {
         "scale_codes": scale_codes,
         "same_headers": same_headers,
         "mmsg_read_back": mmsg_read_back,
+        "counter_gaps": counter_gaps,
     }

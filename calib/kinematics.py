@@ -46,7 +46,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from wristscan.calib import jit, se3
+from wristscan.calib import kinematics_small, se3
 from wristscan.calib.dh import (
     UR_ALPHA,
     UR_MODELS,
@@ -58,6 +58,7 @@ from wristscan.calib.dh import (
 )
 
 FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
 
 logger = logging.getLogger(__name__)
 
@@ -70,6 +71,7 @@ __all__ = [
     "DHParams",
     "Unreachable",
     "forward",
+    "forward_between",
     "from_kinematics_info",
     "get_model",
     "inverse",
@@ -154,82 +156,19 @@ def _chain(
     return x, y, z, t, axes
 
 
-# Up to this many poses, forward() multiplies the six DH matrices (5 stacked 4x4 products: the
-# per-call cost, not the arithmetic, dominates small batches); beyond, it accumulates columns.
-_MATMUL_MAX = 256
-
-
-@functools.lru_cache(maxsize=64)
-def _dh_constants(model: DHParams) -> tuple[FloatArray, ...]:
-    """``theta_offset``, then ``cos alpha``, ``sin alpha``, ``a``, ``d`` as ``(6, 1)`` columns."""
-    d, a, alpha, off = model.arrays()
-    return off, np.cos(alpha)[:, None], np.sin(alpha)[:, None], a[:, None], d[:, None]
-
-
-@functools.lru_cache(maxsize=64)
-def _dh_rows(model: DHParams) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    """``theta_offset`` and the DH matrices ``Rz Tz Tx Rx`` of the six joints as constants:
-    their first two rows are ``cos theta * Kc + sin theta * Ks`` (``(6, 8, 1)``: the rows'
-    eight entries, poses last), the last two ``K23`` (``(6, 1, 2, 4)``)."""
-    off, ca, sa, a, d = _dh_constants(model)
-    Kc = np.zeros((6, 2, 4))
-    Ks = np.zeros((6, 2, 4))
-    K23 = np.zeros((6, 1, 2, 4))
-    Kc[:, 0, 0] = 1.0
-    Kc[:, 0, 3] = a[:, 0]
-    Kc[:, 1, 1] = ca[:, 0]
-    Kc[:, 1, 2] = -sa[:, 0]
-    Ks[:, 0, 1] = -ca[:, 0]
-    Ks[:, 0, 2] = sa[:, 0]
-    Ks[:, 1, 0] = 1.0
-    Ks[:, 1, 3] = a[:, 0]
-    K23[:, 0, 0, 1] = sa[:, 0]
-    K23[:, 0, 0, 2] = ca[:, 0]
-    K23[:, 0, 0, 3] = d[:, 0]
-    K23[:, 0, 1, 3] = 1.0
-    return off, Kc.reshape(6, 8, 1), Ks.reshape(6, 8, 1), K23
-
-
-def _forward_matmul(model: DHParams, qa: FloatArray) -> FloatArray:
-    """:func:`forward` as the product of the six DH matrices ``Rz Tz Tx Rx``, built for all
-    joints at once (joint axis first, so each product takes contiguous stacks). Each entry of
-    their first two rows is ``c * k + s * 0`` or ``c * 0 + s * k``: the same products as
-    entry by entry, in a few whole-array steps (per-call cost dominates small batches)."""
-    off, Kc, Ks, K23 = _dh_rows(model)
-    th = (qa.reshape(-1, 6) + off).T
-    P = th.shape[1]
-    top = np.cos(th)[:, None, :] * Kc
-    top += np.sin(th)[:, None, :] * Ks
-    A = np.empty((6, P, 4, 4))
-    A[:, :, 2:] = K23
-    A[:, :, :2] = top.transpose(0, 2, 1).reshape(6, P, 2, 4)
-    T = A[0] @ A[1]
-    for i in range(2, 6):
-        np.matmul(T, A[i], out=A[i - 2])
-        T = A[i - 2]
-    return T.reshape(*qa.shape[:-1], 4, 4)
-
-
 def forward(model: str | DHParams, q: ArrayLike) -> FloatArray:
     """Forward kinematics: joint angles ``q`` ``(..., 6)`` (rad) to ``flange2base`` ``(..., 4, 4)``.
 
     Vectorised over any leading batch shape. NaN joint rows give NaN transforms (no error), so
-    batches with gaps stay aligned. Small batches (the pairer's, per tick) are computed as
-    products of the DH matrices, large ones column by column: the two agree to rounding
-    (~1e-16).
+    batches with gaps stay aligned. Small batches (the pairer's, per tick) are computed pose by
+    pose compiled, or as products of the DH matrices without numba
+    (:mod:`wristscan.calib.kinematics_small`), large ones column by column: all agree to
+    rounding (~1e-16).
     """
     m = get_model(model)
     qa = _joint_array(q)
-    if qa.size <= 6 * _MATMUL_MAX:
-        kern = jit.kernel("dh_forward")
-        if kern is None:
-            return _forward_matmul(m, qa)
-        off, ca, sa, a, d = _dh_constants(m)
-        out = np.empty((*qa.shape[:-1], 4, 4))
-        # Compiled (the pairer's batch per tick): a tenth of the numpy steps' time per call.
-        kern(np.ascontiguousarray(qa).reshape(-1, 6), off, ca[:, 0], sa[:, 0], a[:, 0], d[:, 0],
-             out.reshape(-1, 4, 4))  # fmt: skip
-        return out
+    if qa.size <= 6 * kinematics_small.MATMUL_MAX:
+        return kinematics_small.forward_small(m, qa)
     x, y, z, t, _ = _chain(m, qa, keep_axes=False)
     out = np.empty((*qa.shape[:-1], 4, 4))
     out[..., :3, 0] = x
@@ -238,6 +177,21 @@ def forward(model: str | DHParams, q: ArrayLike) -> FloatArray:
     out[..., :3, 3] = t
     out[..., 3, :] = (0.0, 0.0, 0.0, 1.0)
     return out
+
+
+def forward_between(
+    model: str | DHParams, samples: FloatArray, rows: IntArray, frac: FloatArray
+) -> FloatArray:
+    """:func:`forward` at the joints interpolated between samples: ``q = samples[rows, :6] +
+    (samples[rows + 1, :6] - samples[rows, :6]) * frac[:, None]`` (``samples`` (n, >= 6) rad,
+    ``rows`` (M,), ``frac`` (M,)); ``(M, 4, 4)``. One compiled call for the pairer's batches
+    (the same bits as interpolating, then :func:`forward`)."""
+    m = get_model(model)
+    out = kinematics_small.between_small(m, samples, rows, frac)
+    if out is not None:
+        return out
+    q0 = samples[rows, :6]
+    return forward(m, q0 + (samples[rows + 1, :6] - q0) * frac[:, None])
 
 
 def jacobian(model: str | DHParams, q: ArrayLike) -> FloatArray:

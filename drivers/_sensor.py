@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from wristscan.calib import jit
 from wristscan.drivers.base import ProfileSensor
 from wristscan.drivers.records import Profile, ProfileBlock
 
@@ -37,6 +38,7 @@ that repeats its last few frames after a reconnection is not a reboot)."""
 
 _MAX_STEP = 1 << 30
 """Counter steps a block's vectorised bookkeeping takes (larger ones: profile by profile)."""
+_MAX_STEP_U64 = np.uint64(_MAX_STEP)
 
 
 class SensorCore(ProfileSensor):
@@ -134,11 +136,15 @@ class SensorCore(ProfileSensor):
         first = 1 if last is None else (int(c[0]) - last) % modulo
         if not 1 <= first <= _MAX_STEP:
             return None
+        gaps = jit.kernel("counter_gaps")
+        if gaps is not None:  # one compiled call for the numpy steps below
+            missing = int(gaps(c, np.uint64(modulo - 1), _MAX_STEP_U64))
+            return None if missing < 0 else first - 1 + missing
         steps = c[1:] - c[:-1]  # modulo 2**64 (arrays wrap without a warning)
         if modulo != 1 << 64:
             steps &= np.uint64(modulo - 1)
         # 1 <= step <= 2**30 in one comparison: a step of 0 wraps to the top.
-        if not np.all(steps - np.uint64(1) < np.uint64(_MAX_STEP)):
+        if not np.all(steps - np.uint64(1) < _MAX_STEP_U64):
             return None
         return first - 1 + int(steps.sum()) - int(steps.shape[0])
 

@@ -298,9 +298,7 @@ class RobotStateBuffer:
         """``flange2base`` between samples ``i`` and ``i + 1`` at fractions ``s``."""
         V = self._buf.values
         if self.mode == "joint":
-            q0 = V[i, :6]
-            q = q0 + (V[i + 1, :6] - q0) * s[:, None]
-            return kinematics.forward(self.model, q)
+            return kinematics.forward_between(self.model, V, i, s)
         T0 = se3.pose_to_matrix(V[i, 6:])
         T1 = se3.pose_to_matrix(V[i + 1, 6:])
         return np.asarray(se3.interpolate(T0, T1, s) @ self._flange2tcp)

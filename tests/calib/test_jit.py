@@ -52,6 +52,15 @@ def test_compiled_forward_kinematics_agrees_and_is_batch_independent(
     ok = np.arange(256) != 5
     assert np.abs(compiled[ok] - plain[ok]).max() <= 1e-15
     assert alone.tobytes() == compiled[[0, 7, 255]].tobytes()
+    # The pairer's call: joints interpolated between samples in the same kernel, same bits.
+    rows, frac = rng.integers(0, 255, 40), rng.uniform(0, 1, 40)
+    rows[3] = 4  # between a sample and the NaN one
+    between = kinematics.forward_between(model, q, rows, frac)  # numpy's path
+    monkeypatch.setattr(jit, "enabled", True)
+    q0 = q[rows]
+    interpolated = kinematics.forward(model, q0 + (q[rows + 1] - q0) * frac[:, None])
+    assert kinematics.forward_between(model, q, rows, frac).tobytes() == interpolated.tobytes()
+    assert np.abs(between - interpolated)[np.arange(40) != 3].max() <= 1e-15
     assert shaped.tobytes() == compiled[:12].reshape(2, 6, 4, 4).tobytes()
 
 

@@ -395,9 +395,13 @@ class _Book(SensorCore):
         return self._pop()
 
 
+@pytest.mark.parametrize("compiled", [True, False])
 @pytest.mark.parametrize("expected", [7, None])
 @pytest.mark.parametrize("modulo", [1 << 32, 1 << 64])
-def test_block_bookkeeping_counts_as_profile_by_profile(modulo: int, expected: int | None) -> None:
+def test_block_bookkeeping_counts_as_profile_by_profile(
+    modulo: int, expected: int | None, compiled: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(jit, "enabled", compiled)  # the counters' steps: one kernel, or numpy
     rng = np.random.default_rng(modulo % 97)
     seq = list(_random_counters(rng, modulo))
     seq = [c for c in seq if c < 1 << 63]
