@@ -139,6 +139,7 @@ def _compile(numba: Any) -> dict[str, Callable[..., Any]]:
         "align_rows": _align_kernel(numba),
         "dh_forward": _kinematics_kernel(numba),
         **_decode_kernels(numba),
+        **_receive_kernels(numba),
     }
 
 
@@ -306,6 +307,14 @@ def _decode_kernels(numba: Any) -> dict[str, Any]:
                 out[f, i] = words[s + f]
         return True
 
+    return {"scale_codes": scale_codes, "same_headers": same_headers}
+
+
+def _receive_kernels(numba: Any) -> dict[str, Any]:
+    import numpy as np
+
+    exact = _njit(numba, nogil=True, boundscheck=False)
+
     @exact
     def mmsg_read_back(  # type: ignore[no-untyped-def]
         lens, lt, ctrl_len, sec, nsec, lt_want, ctrl_want, stamped, offset, now, lengths, stamps
@@ -340,9 +349,4 @@ def _decode_kernels(numba: Any) -> dict[str, Any]:
             missing += step - one
         return np.int64(missing)
 
-    return {
-        "scale_codes": scale_codes,
-        "same_headers": same_headers,
-        "mmsg_read_back": mmsg_read_back,
-        "counter_gaps": counter_gaps,
-    }
+    return {"mmsg_read_back": mmsg_read_back, "counter_gaps": counter_gaps}
