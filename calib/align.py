@@ -312,6 +312,7 @@ def align_rows(
     sensor2frame: NDArray[np.floating],
     out: NDArray[np.float32] | None = None,
     check_finite: bool = True,
+    z_scale: tuple[float, float] | None = None,
 ) -> NDArray[np.float32]:
     """Eq. (1) for whole profiles in float32, straight into ``out``: the hot path's alignment.
 
@@ -326,8 +327,14 @@ def align_rows(
     Invalid points may hold anything (NaN); a non-finite valid point raises ``ValueError``
     unless ``check_finite`` is False (the check costs ~1 us per 2048-point profile: a caller
     whose decoder makes every valid point finite may skip it).
+    ``z_scale`` ``(scale, offset)``: ``z`` holds a sensor's integer codes, ``z = codes * scale +
+    offset`` metres (float64, multiply then add), decoded in the compiled pass as it reads them
+    (a quarter of float64 z's bytes to read).
     """
-    ya, za, m = _rows_inputs(y, z, valid)
+    if z_scale is not None and jit.kernel("align_rows") is None:  # numpy: decoded first
+        z = np.asarray(z).astype(np.float64) * z_scale[0] + z_scale[1]
+        z_scale = None
+    ya, za, m = _rows_inputs(y, z, valid, z_scale is None)
     poses = np.asarray(sensor2frame)
     p, n = za.shape
     if poses.shape != (p, 4, 4):
@@ -346,7 +353,7 @@ def align_rows(
         return out
     kern = jit.kernel("align_rows")
     if kern is not None:
-        _rows_jit(kern, ya, za, m, poses, out, check_finite)
+        _rows_jit(kern, ya, za, m, poses, out, check_finite, z_scale or (1.0, 0.0))
         return out
     # inf * 0 in the products of invalid points is no error: they are dropped
     with np.errstate(invalid="ignore", over="ignore"):
@@ -365,15 +372,16 @@ def _rows_jit(
     poses: NDArray[np.floating],
     out: NDArray[np.float32],
     check_finite: bool,
+    z_scale: tuple[float, float],
 ) -> None:
     """:func:`align_rows`' work in one compiled pass (:mod:`.jit`): the same float32 transform
-    per profile, the same points to float32 rounding (FMA may round once less)."""
+    per profile, the same points to float32 rounding."""
     A = np.ascontiguousarray(poses[:, :3, 1:4], dtype=np.float32)
     # The grid copied (N values): a read-only shared grid would be a second compiled variant.
     y2 = np.array(ya.reshape(1, -1) if ya.ndim == 1 else ya, np.float64, order="C")
     z2 = za if za.flags.c_contiguous and za.flags.writeable else np.array(za, order="C")
     mask = _NO_MASK if m is None else np.ascontiguousarray(m)
-    got = int(kern(y2, z2, mask, m is not None, A, out.reshape(-1)))
+    got = int(kern(y2, z2, mask, m is not None, A, out.reshape(-1), *z_scale))
     if got >= 0 or not check_finite:
         return
     if m is None:  # as the numpy path: the inputs name what is wrong
@@ -464,12 +472,12 @@ def _interleave(planar: NDArray[np.float32], dst: NDArray[np.float32]) -> None:
 
 
 def _rows_inputs(
-    y: ArrayLike, z: ArrayLike, valid: ArrayLike | None
+    y: ArrayLike, z: ArrayLike, valid: ArrayLike | None, z_float: bool = True
 ) -> tuple[FloatArray, FloatArray, NDArray[np.bool_] | None]:
     """:func:`align_rows`' arrays checked: y (N,) or (P, N), z (P, N), valid (P, N) bool or None
     (also when every point is valid: the output is then written without compaction)."""
     ya = np.asarray(y, dtype=np.float64)
-    za = np.asarray(z, dtype=np.float64)
+    za = np.asarray(z, dtype=np.float64) if z_float else np.asarray(z)  # codes: as they are
     if za.ndim != 2:
         raise ValueError(f"z: expected (P, N) profiles x points, got shape {za.shape}")
     if ya.shape not in ((za.shape[1],), za.shape):

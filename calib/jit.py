@@ -92,15 +92,18 @@ def _exercise(ks: dict[str, Callable[..., Any]]) -> None:
     import numpy as np
 
     out = np.empty(6, np.float32)
-    ks["align_rows"](
-        np.zeros((1, 2)), np.zeros((1, 2)), np.ones((1, 2), np.bool_), True,
-        np.zeros((1, 3, 3), np.float32), out,
-    )  # fmt: skip
+    for dt in (np.float64, np.int16, np.int32):  # decoded z, or a sensor's codes
+        ks["align_rows"](
+            np.zeros((1, 2)), np.zeros((1, 2), dt), np.ones((1, 2), np.bool_), True,
+            np.zeros((1, 3, 3), np.float32), out, 1.0, 0.0,
+        )  # fmt: skip
     one = np.zeros(1, np.int64)
     for dt in (np.int16, np.int32):
         ks["scale_codes"](
             np.zeros(4, dt), one, 4, 0, 1e-9, 0.0, -1, np.empty((1, 2)), np.empty((1, 2), np.bool_)
         )
+        ks["take_codes"](np.zeros(4, dt), one, 4, 0, -1, np.empty((1, 2), dt),
+                         np.empty((1, 2), np.bool_))  # fmt: skip
     ks["counter_gaps"](np.zeros(2, np.uint64), np.uint64(1), np.uint64(1))
     six, rows = np.zeros(6), np.zeros(1, np.int64)
     for between in (False, True):
@@ -189,15 +192,17 @@ def _kinematics_kernel(numba: Any) -> Any:
 def _align_kernel(numba: Any) -> Any:
     import numpy as np
 
-    # 'contract' lets a multiply and an add fuse (FMA); no other fast-math licence.
-    jit = _njit(numba, nogil=True, boundscheck=False, fastmath={"contract"})
+    # No fast-math licence: a sensor's codes decoded here (z = code * scale + offset) give the
+    # bits numpy's decoding gives, so coded and decoded profiles align alike.
+    jit = _njit(numba, nogil=True, boundscheck=False)
 
     @jit
-    def align_rows(y, z, valid, has_mask, A, out):  # type: ignore[no-untyped-def]
+    def align_rows(y, z, valid, has_mask, A, out, scale, offset):  # type: ignore[no-untyped-def]
         """Eq. (1) for P profiles into ``out``, the (M, 3) float32 output rows flat (3 M,):
-        ``y`` (1 or P, N) float64, ``z`` (P, N) float64, ``valid`` (P, N) (read when
-        ``has_mask``), ``A`` (P, 3, 3) float32 rows of ``[R[:, 1] | R[:, 2] | t]``. Returns the
-        output rows written, or -1 - row of the first valid point whose result is not finite."""
+        ``y`` (1 or P, N) float64, ``z`` (P, N) metres ``z * scale + offset`` (float64 with 1
+        and 0, or a sensor's integer codes), ``valid`` (P, N) (read when ``has_mask``), ``A``
+        (P, 3, 3) float32 rows of ``[R[:, 1] | R[:, 2] | t]``. Returns the output rows
+        written, or -1 - row of the first valid point whose result is not finite."""
         p, n = z.shape
         shared = y.shape[0] == 1
         idx = np.empty(n, np.int64)
@@ -218,7 +223,7 @@ def _align_kernel(numba: Any) -> Any:
             if nv == n:  # the usual profile, every point valid: no compaction, vectorised
                 o = out[k : k + 3 * n]
                 for j in range(n):
-                    yy, zz = np.float32(yi[j]), np.float32(zi[j])
+                    yy, zz = np.float32(yi[j]), np.float32(np.float64(zi[j]) * scale + offset)
                     o[3 * j] = a00 * yy + a01 * zz + a02
                     o[3 * j + 1] = a10 * yy + a11 * zz + a12
                     o[3 * j + 2] = a20 * yy + a21 * zz + a22
@@ -233,7 +238,7 @@ def _align_kernel(numba: Any) -> Any:
                 o = out[k : k + 3 * m]
                 for t in range(m):
                     j = idx[t]
-                    yy, zz = np.float32(yi[j]), np.float32(zi[j])
+                    yy, zz = np.float32(yi[j]), np.float32(np.float64(zi[j]) * scale + offset)
                     o[3 * t] = a00 * yy + a01 * zz + a02
                     o[3 * t + 1] = a10 * yy + a11 * zz + a12
                     o[3 * t + 2] = a20 * yy + a21 * zz + a22
@@ -307,7 +312,27 @@ def _decode_kernels(numba: Any) -> dict[str, Any]:
                 out[f, i] = words[s + f]
         return True
 
-    return {"scale_codes": scale_codes, "same_headers": same_headers}
+    @exact
+    def take_codes(buf, rows, stride, at, sentinel, codes, valid):  # type: ignore[no-untyped-def]
+        """P profiles' integer codes copied out of ``buf`` (1-D int16/int32, profile i's
+        at ``rows[i] * stride + at``, counted in codes) into ``codes`` (P, N), ``valid`` False
+        where one is ``sentinel``. Returns the number of invalid points."""
+        p, n = codes.shape
+        bad = 0
+        for i in range(p):
+            s = rows[i] * stride + at
+            src, ci, vi = buf[s : s + n], codes[i], valid[i]
+            nv = 0
+            for j in range(n):
+                c = src[j]
+                ci[j] = c
+                ok = c != sentinel
+                vi[j] = ok
+                nv += ok
+            bad += n - nv
+        return bad
+
+    return {"scale_codes": scale_codes, "same_headers": same_headers, "take_codes": take_codes}
 
 
 def _receive_kernels(numba: Any) -> dict[str, Any]:

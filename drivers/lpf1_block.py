@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 from wristscan.calib import jit
 from wristscan.drivers._crc import crc32
 from wristscan.drivers.lpf1 import _FORMAT, CRC_LEN, HEADER_LEN, MAGIC, VERSION, MsgType, _x_grid
-from wristscan.drivers.records import ProfileBlock
+from wristscan.drivers.records import PointCodes, ProfileBlock
 
 if TYPE_CHECKING:
     from wristscan.drivers._udp import Datagrams
@@ -277,9 +277,10 @@ def _block(
     a: int,
     b: int,
     x: NDArray[np.float64],
-    z: NDArray[np.float64],
+    z: NDArray[np.float64] | None,
     valid: NDArray[np.bool_],
     intensity: NDArray[np.uint8] | None,
+    codes: PointCodes | None = None,
 ) -> ProfileBlock:
     """The block of datagrams ``a .. b - 1`` (``w``: their :data:`_FIELD_WORDS` header words,
     (5, P))."""
@@ -300,6 +301,7 @@ def _block(
         intensity=intensity,
         encoder=encoder,
         encoder_valid=None if encoder is None else ev,
+        codes=codes,
     )
 
 
@@ -310,8 +312,8 @@ def decode_uniform(
     whole PROFILE message of the first one's shape with integer points on a uniform grid, all
     CRCs right. None otherwise, or without the compiled kernels: then :func:`plan` and
     :func:`decode_run`, which give the same block (tests/drivers/test_sensor_blocks.py)."""
-    same, scale_codes = jit.kernel("same_headers"), jit.kernel("scale_codes")
-    if same is None or scale_codes is None or not _profile_header(grams, headers, 0, sensor_id):
+    same, take_codes = jit.kernel("same_headers"), jit.kernel("take_codes")
+    if same is None or take_codes is None or not _profile_header(grams, headers, 0, sensor_id):
         return None
     h0 = headers[0].item()
     flags, n, fmt = h0[4], h0[10], h0[11]
@@ -327,17 +329,19 @@ def decode_uniform(
         return None
     if not _crc_ok(grams, None).all():
         return None
-    z = np.empty((k, n))
+    # The points kept as their codes (a copy: the buffer is reused), z decoded only if asked
+    # for: the alignment reads the codes, a quarter of the bytes of float64 z.
+    codes = np.empty((k, n), dt)
     valid = np.empty((k, n), np.bool_)
-    codes = np.frombuffer(grams.buf, dt, len(grams.buf) // dt.itemsize)
+    buf = np.frombuffer(grams.buf, dt, len(grams.buf) // dt.itemsize)
     size = dt.itemsize
-    scale_codes(codes, grams.rows, grams.stride // size, HEADER_LEN // size, zs * 1e-9,
-                zo * 1e-6, sentinel, z, valid)  # fmt: skip
+    take_codes(buf, grams.rows, grams.stride // size, HEADER_LEN // size, sentinel, codes, valid)
     intensity = None
     if flags & 0x01:
         at = HEADER_LEN + n * size
         intensity = np.array(_rows_of(grams, Run(0, k, True), at, np.dtype(np.uint8), n))
-    return _block(grams, w, 0, k, _x_grid(n, xs, xo), z, valid, intensity)
+    coded = PointCodes(codes, zs * 1e-9, zo * 1e-6, sentinel)
+    return _block(grams, w, 0, k, _x_grid(n, xs, xo), None, valid, intensity, coded)
 
 
 _ENCODER_VALID_BIT = np.uint64(0x04 << 56)

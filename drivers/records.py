@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["AlignedBatch", "Profile", "ProfileBlock", "RobotState", "TableState"]
+__all__ = ["AlignedBatch", "PointCodes", "Profile", "ProfileBlock", "RobotState", "TableState"]
 
 
 @dataclass(slots=True)
@@ -47,7 +47,31 @@ class Profile:
         return int(self.y.shape[0])
 
 
-@dataclass(slots=True)
+@dataclass(frozen=True, slots=True)
+class PointCodes:
+    """Points as the sensor coded them: ``z = codes * scale_m + offset_m`` metres (float64,
+    multiply then add), invalid where ``codes == sentinel``. The hot path aligns them as they
+    are (the scale folded into the transform's input); ``decode`` gives the float64 z."""
+
+    codes: NDArray[np.signedinteger]
+    """(P, N) int16 or int32, C-contiguous (a copy: the receive buffer is reused)."""
+    scale_m: float
+    offset_m: float
+    sentinel: int
+
+    def take(self, rows: NDArray[np.integer] | slice) -> PointCodes:
+        return PointCodes(self.codes[rows], self.scale_m, self.offset_m, self.sentinel)
+
+    def decode(self) -> NDArray[np.float64]:
+        """z (P, N) float64 metres, NaN where invalid (``lpf1.decode_profile``'s values)."""
+        z = self.codes.astype(np.float64)
+        z *= self.scale_m
+        z += self.offset_m
+        z[self.codes == self.sentinel] = np.nan
+        return z
+
+
+@dataclass(slots=True, init=False)
 class ProfileBlock:
     """P profiles of N points each, as arrays: what the hot path moves instead of P records.
 
@@ -56,7 +80,8 @@ class ProfileBlock:
     ``encoder`` with ``encoder_valid`` (None when no profile carries a count). Per point:
     ``y`` (N,) when every profile shares one lateral grid (read-only, shared) or (P, N);
     ``z`` (P, N) float64 metres, NaN where invalid; ``valid`` (P, N); ``intensity`` (P, N) or
-    None. Rows are in arrival order.
+    None. Rows are in arrival order. A block made with ``codes`` (:class:`PointCodes`) instead
+    of ``z`` decodes z when it is first read.
     """
 
     sensor_id: NDArray[np.int64]
@@ -64,21 +89,56 @@ class ProfileBlock:
     sensor_time_ns: NDArray[np.int64]
     host_time_ns: NDArray[np.int64]
     y: NDArray[np.float64]
-    z: NDArray[np.float64]
+    _z: NDArray[np.float64] | None
     valid: NDArray[np.bool_]
-    intensity: NDArray[np.uint8] | None = None
-    encoder: NDArray[np.int64] | None = None
-    encoder_valid: NDArray[np.bool_] | None = None
+    intensity: NDArray[np.uint8] | None
+    encoder: NDArray[np.int64] | None
+    encoder_valid: NDArray[np.bool_] | None
+    codes: PointCodes | None
+
+    def __init__(
+        self,
+        sensor_id: NDArray[np.int64],
+        frame_counter: NDArray[np.int64],
+        sensor_time_ns: NDArray[np.int64],
+        host_time_ns: NDArray[np.int64],
+        y: NDArray[np.float64],
+        z: NDArray[np.float64] | None,
+        valid: NDArray[np.bool_],
+        intensity: NDArray[np.uint8] | None = None,
+        encoder: NDArray[np.int64] | None = None,
+        encoder_valid: NDArray[np.bool_] | None = None,
+        codes: PointCodes | None = None,
+    ) -> None:
+        if z is None and codes is None:
+            raise ValueError("profile block: give z or codes")
+        self.sensor_id, self.frame_counter = sensor_id, frame_counter
+        self.sensor_time_ns, self.host_time_ns = sensor_time_ns, host_time_ns
+        self.y, self._z, self.valid, self.intensity = y, z, valid, intensity
+        self.encoder, self.encoder_valid, self.codes = encoder, encoder_valid, codes
+        self.__post_init__()
+
+    @property
+    def z(self) -> NDArray[np.float64]:
+        if self._z is None:
+            assert self.codes is not None
+            self._z = self.codes.decode()
+        return self._z
+
+    @property
+    def coded(self) -> bool:
+        """The points are still only :attr:`codes` (z not decoded yet)."""
+        return self._z is None
 
     def __post_init__(self) -> None:
         p = self.sensor_time_ns.shape[0]
-        if self.z.ndim != 2 or self.z.shape[0] != p or self.valid.shape != self.z.shape:
+        zs = self._z.shape if self._z is not None else self.codes.codes.shape  # type: ignore[union-attr]
+        if len(zs) != 2 or zs[0] != p or self.valid.shape != zs:
             raise ValueError(
-                f"profile block arrays disagree: {p} profiles, z {self.z.shape}, "
-                f"valid {self.valid.shape}"
+                f"profile block arrays disagree: {p} profiles, z {zs}, valid {self.valid.shape}"
             )
-        if self.y.shape not in ((self.z.shape[1],), self.z.shape):
-            raise ValueError(f"profile block: y {self.y.shape} for z {self.z.shape}")
+        if self.y.shape not in ((zs[1],), zs):
+            raise ValueError(f"profile block: y {self.y.shape} for z {zs}")
         for name in ("sensor_id", "frame_counter", "host_time_ns"):
             if getattr(self, name).shape != (p,):
                 raise ValueError(
@@ -87,16 +147,16 @@ class ProfileBlock:
 
     @property
     def n_profiles(self) -> int:
-        return int(self.z.shape[0])
+        return int(self.valid.shape[0])
 
     @property
     def n_points(self) -> int:
         """Points per profile."""
-        return int(self.z.shape[1])
+        return int(self.valid.shape[1])
 
     def y_rows(self) -> NDArray[np.float64]:
         """``y`` as (P, N) (a broadcast read-only view for a shared grid)."""
-        return np.broadcast_to(self.y, self.z.shape) if self.y.ndim == 1 else self.y
+        return np.broadcast_to(self.y, self.valid.shape) if self.y.ndim == 1 else self.y
 
     def take(self, rows: NDArray[np.integer] | slice) -> ProfileBlock:
         """The block of the profiles ``rows`` (copies for an index array, views for a slice)."""
@@ -109,11 +169,12 @@ class ProfileBlock:
             self.sensor_time_ns[rows],
             self.host_time_ns[rows],
             y,
-            self.z[rows],
+            None if self._z is None else self._z[rows],
             self.valid[rows],
             None if self.intensity is None else self.intensity[rows],
             enc,
             ev,
+            None if self.codes is None else self.codes.take(rows),
         )
 
     def profile(self, k: int) -> Profile:

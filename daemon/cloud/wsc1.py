@@ -10,11 +10,13 @@ from __future__ import annotations
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from wristscan.calib import align
+from wristscan.drivers.records import PointCodes
 
 __all__ = [
     "ENCODING",
@@ -138,9 +140,13 @@ class Wsc1Frame:
 
 
 RowGroup = tuple[
-    NDArray[np.floating], NDArray[np.floating], NDArray[np.bool_] | None, NDArray[np.uint8] | None
+    NDArray[np.floating],
+    NDArray[np.floating] | PointCodes,
+    NDArray[np.bool_] | None,
+    NDArray[np.uint8] | None,
 ]
-"""Consecutive profiles of N points: ``y`` (N,) or (k, N), ``z`` (k, N), ``valid`` (k, N) or
+"""Consecutive profiles of N points: ``y`` (N,) or (k, N), ``z`` (k, N) or the sensor's codes
+(:class:`~wristscan.drivers.records.PointCodes`, aligned as they are), ``valid`` (k, N) or
 None, ``intensity`` (k, N) or None (a segment of a paired batch)."""
 
 
@@ -190,7 +196,7 @@ def aligned_frame_of(
     counts: list[int] = []
     kept: list[NDArray[np.bool_] | None] = []
     for _, z, valid, inten in groups:
-        zs = np.shape(z)
+        zs = z.codes.shape if isinstance(z, PointCodes) else np.shape(z)
         if len(zs) != 2 or (valid is not None and valid.shape != zs):
             vs = None if valid is None else valid.shape
             raise ValueError(f"z and valid must be (P, N) alike, got {zs} and {vs}")
@@ -204,18 +210,24 @@ def aligned_frame_of(
         counts.append(zs[0] * zs[1] if valid is None else int(np.count_nonzero(valid)))
     frame = Wsc1Frame(sum(counts), intensity=intensity, profile_index=profile_index, reuse=reuse)
     o = row = 0
-    for (y, z, _, inten), valid, c in zip(groups, kept, counts, strict=True):
-        k = z.shape[0]
+    for (y, points, _, inten), valid, c in zip(groups, kept, counts, strict=True):
+        scale = None
+        if isinstance(points, PointCodes):
+            zk: NDArray[Any] = points.codes
+            scale = (points.scale_m, points.offset_m)
+        else:
+            zk = points
+        k = zk.shape[0]
         part = slice(o, o + c)
         align.align_rows(
-            y, z, valid, sensor2frame[row : row + k], out=frame.xyz[part], check_finite=check_finite
+            y, zk, valid, sensor2frame[row : row + k], frame.xyz[part], check_finite, scale
         )
         if frame.intensity is not None and inten is not None:
             _put_intensity(frame.intensity[part], inten, valid)
         if frame.profile_index is not None:
             rows = np.arange(row, row + k, dtype=np.uint32)
             if valid is None:
-                frame.profile_index[part].reshape(z.shape)[...] = rows[:, None]
+                frame.profile_index[part].reshape(zk.shape)[...] = rows[:, None]
             else:
                 frame.profile_index[part] = np.repeat(rows, np.count_nonzero(valid, axis=1))
         o += c

@@ -440,7 +440,7 @@ class Pipeline:
             )
             # Every point in float32 straight into the WSC1 payload, segment by segment (the
             # profiles' rows as they arrived: nothing concatenated first).
-            groups = [(g.y, g.z, g.valid, g.intensity) for g in batch.segments()]
+            groups = [(g.y, g.points, g.valid, g.intensity) for g in batch.segments()]
             cloud = wsc1.aligned_frame_of(
                 groups,
                 poses,

@@ -10,10 +10,13 @@ segment by segment (:meth:`PairedBatch.segments`) never copies the points.
 from __future__ import annotations
 
 import itertools
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    from wristscan.drivers.records import PointCodes
 
 __all__ = ["PairedBatch", "Segment", "concat_batches"]
 
@@ -22,24 +25,56 @@ FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
 
-class Segment(NamedTuple):
+class Segment:
     """Profiles ``start:start + n`` of a batch, all of ``N`` points, as ``(n, N)`` arrays
-    (usually views of the block they arrived in: read-only by convention)."""
+    (usually views of the block they arrived in: read-only by convention). A segment of coded
+    points (``codes``: :class:`~wristscan.drivers.records.PointCodes`) decodes ``z`` when it
+    is first read; the hot path aligns the codes themselves."""
 
-    start: int
-    y: FloatArray
-    """``(N,)`` when the profiles share one lateral grid, else ``(n, N)``."""
-    z: FloatArray
-    valid: BoolArray
-    intensity: NDArray[np.uint8] | None
+    __slots__ = ("_z", "codes", "intensity", "start", "valid", "y")
+
+    def __init__(
+        self,
+        start: int,
+        y: FloatArray,
+        z: FloatArray | None,
+        valid: BoolArray,
+        intensity: NDArray[np.uint8] | None,
+        codes: PointCodes | None = None,
+    ) -> None:
+        self.start = start
+        self.y = y
+        """``(N,)`` when the profiles share one lateral grid, else ``(n, N)``."""
+        self._z = z
+        self.valid = valid
+        self.intensity = intensity
+        self.codes = codes
+
+    @property
+    def z(self) -> FloatArray:
+        if self._z is None:
+            assert self.codes is not None
+            self._z = self.codes.decode()
+        return self._z
+
+    @property
+    def points(self) -> FloatArray | PointCodes:
+        """``z``, or the codes while they are not decoded (what the hot path aligns)."""
+        if self._z is None and self.codes is not None:
+            return self.codes
+        return self.z
 
     @property
     def n_profiles(self) -> int:
-        return int(self.z.shape[0])
+        return int(self.valid.shape[0])
 
     def y_rows(self) -> FloatArray:
         """``y`` as ``(n, N)`` (a read-only broadcast view for a shared grid)."""
-        return np.broadcast_to(self.y, self.z.shape) if self.y.ndim == 1 else self.y
+        return np.broadcast_to(self.y, self.valid.shape) if self.y.ndim == 1 else self.y
+
+    def shifted(self, by: int) -> Segment:
+        """The same profiles, ``by`` further into a batch."""
+        return Segment(self.start + by, self.y, self._z, self.valid, self.intensity, self.codes)
 
 
 def _flat_segments(
@@ -132,12 +167,14 @@ class PairedBatch:
         self._y, self._z, self._valid, self._intensity = y, z, valid, intensity
         if z is None and len(segments) == 1:  # one run: flat views, nothing to build
             s = segments[0]
-            self._z, self._valid = s.z.reshape(-1), s.valid.reshape(-1)
+            if s.codes is None:  # coded points: z decoded only if read (self.z)
+                self._z = s.z.reshape(-1)
+            self._valid = s.valid.reshape(-1)
             self._intensity = None if s.intensity is None else s.intensity.reshape(-1)
             if s.y.ndim == 2:
                 self._y = s.y.reshape(-1)
         self._has_intensity = all(s.intensity is not None for s in segments)
-        if points_per_profile is None and p and len({s.z.shape[1] for s in segments}) == 1:
+        if points_per_profile is None and p and len({s.valid.shape[1] for s in segments}) == 1:
             n = np.diff(offsets)
             points_per_profile = int(n[0]) if n.min() == n.max() else None
         self.points_per_profile = points_per_profile
@@ -245,7 +282,7 @@ def concat_batches(batches: list[PairedBatch]) -> PairedBatch:
         for b in batches[1:]
     )
     segments = [
-        Segment(int(first) + s.start, s.y, s.z, s.valid, s.intensity)
+        s.shifted(int(first))
         for b, first in zip(batches, sizes[:-1], strict=True)
         for s in b.segments()
     ]

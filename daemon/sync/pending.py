@@ -306,7 +306,7 @@ class PendingProfiles:
                 r = slice(int(row[a]), int(row[a]) + b - a)
                 y = blk.y if blk.y.ndim == 1 else blk.y[r]
                 inten = None if blk.intensity is None else blk.intensity[r]
-                out.segments.append(Segment(a, y, blk.z[r], blk.valid[r], inten))
+                out.segments.append(_segment(a, y, blk, r, inten))
             out.y_grid = _shared_grid([self.blocks[int(bid[a])] for a in cuts[:-1]])
             return out
         groups = _groups(bid, row)
@@ -338,9 +338,18 @@ class PendingProfiles:
             self.sid[sel], self.fc[sel], np.arange(0, (P + 1) * N, N, dtype=np.int64), None
         )
         out.points_per_profile = N
-        out.segments = [Segment(0, y, blk.z[r], blk.valid[r], inten)]
+        out.segments = [_segment(0, y, blk, r, inten)]
         out.y_grid = blk.y if blk.y.ndim == 1 else None
         return out
+
+
+def _segment(
+    start: int, y: FloatArray, blk: ProfileBlock, r: slice, inten: NDArray[np.uint8] | None
+) -> Segment:
+    """Rows ``r`` of ``blk`` as a segment: views, its points still coded when the block's are."""
+    if blk.coded and blk.codes is not None:
+        return Segment(start, y, None, blk.valid[r], inten, blk.codes.take(r))
+    return Segment(start, y, blk.z[r], blk.valid[r], inten)
 
 
 def _groups(bid: IntArray, row: IntArray) -> list[tuple[int, IntArray, slice | IntArray]]:
