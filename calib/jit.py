@@ -1,14 +1,15 @@
 """Compiled loops for the daemon's hot path (extra ``fast``: numba), with numpy as the fallback.
 
 numpy needs several passes over a profile's points for what one loop does in one: the float32
-alignment of :func:`wristscan.calib.align.align_rows` with its WSC1 frame costs 8-20 us per
+alignment of :func:`wristscan.calib.align.align_rows` with its WSC1 frame costs 6-16 us per
 2048-point profile in numpy (cast, matmul, three strided copies into the interleaved output, the
-compaction of invalid points, the finiteness check) and 4-8 us compiled (benchmarks/calib_align.py
-``--hot``, all valid to 30 % invalid scattered). The LPF1 block decoder's scaling of integer
-point codes to metres (:mod:`wristscan.drivers.lpf1_block`) costs ~1.7 us per profile in numpy
-(cast, scale, offset, compare, negate: five passes) and ~0.6 us compiled, bit for bit the same
-values. The kernels are compiled when first asked for (:func:`warm`; ~0.3-0.6 s, then loaded
-from numba's on-disk cache) so that a process that never aligns never imports numba.
+compaction of invalid points, the finiteness check) and 2.0-2.5 us compiled with every point
+valid, 4.4-6.7 us with 26-30 % invalid (benchmarks/calib_align.py ``--hot``). The LPF1 reader's
+usual pass (headers checked, fields and integer codes copied: :mod:`wristscan.drivers.lpf1_block`),
+``recvmmsg``'s results, frame-counter steps and the pairer's forward kinematics are kernels too,
+each one call where numpy takes many small ones (docs/pipeline.md, "Sixth session"). The
+kernels are compiled when first asked for (:func:`warm`; ~0.3-0.6 s, then loaded from numba's
+on-disk cache) so that a process that never aligns never imports numba.
 
 Without numba, or with the environment variable ``WRISTSCAN_JIT=0``, every caller takes its
 numpy path; the alignments agree to float32 rounding (tests/calib/test_align_rows.py runs both),
