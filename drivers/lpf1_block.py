@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 from wristscan.calib import jit
 from wristscan.drivers._crc import crc32
 from wristscan.drivers.lpf1 import _FORMAT, CRC_LEN, HEADER_LEN, MAGIC, VERSION, MsgType, _x_grid
-from wristscan.drivers.records import PointCodes, ProfileBlock
+from wristscan.drivers.records import PointCodes, ProfileBlock, codes_to_metres
 
 if TYPE_CHECKING:
     from wristscan.drivers._udp import Datagrams
@@ -377,8 +377,5 @@ def _decode_z(
     if sentinel is None:
         z = z_raw.astype(np.float64)
         return z, None, ~np.isfinite(z)
-    invalid = z_raw == sentinel
-    z = z_raw.astype(np.float64)  # exact; then in place (a casting multiply is slower)
-    z *= zs * 1e-9
-    z += zo * 1e-6
+    z, invalid = codes_to_metres(z_raw, zs * 1e-9, zo * 1e-6, sentinel)
     return z, None, invalid

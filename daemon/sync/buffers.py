@@ -121,6 +121,23 @@ class SampleBuffer:
         if self._i1 - self._i0 > self.capacity:
             self._i0 += 1
 
+    def _rows_for(self, ts: list[int]) -> slice | None:
+        """:meth:`_slot` for samples ``ts`` at once: the rows to write their values to, then
+        :meth:`_commit_many`; None (nothing counted) unless their times increase past the last
+        sample and the rows are free without making room."""
+        i, n = self._i1, len(ts)
+        if i + n > self._t.shape[0] or not all(a < b for a, b in itertools.pairwise(ts)):
+            return None
+        if i > self._i0 and ts[0] <= self._t[i - 1]:
+            return None
+        return slice(i, i + n)
+
+    def _commit_many(self, rows: slice, ts: list[int]) -> None:
+        """:meth:`_commit` of the samples written to ``rows`` (from :meth:`_rows_for`)."""
+        self._t[rows] = ts
+        self._i1 = rows.stop
+        self._i0 = max(self._i0, self._i1 - self.capacity)
+
     def locate(self, t_ns: ArrayLike) -> tuple[IntArray, FloatArray, ReasonArray]:
         """Bracket each query: index ``i`` into :attr:`times` with
         ``times[i] <= t <= times[i + 1]``, the fraction ``s`` in [0, 1] and the :class:`Reason`
@@ -262,17 +279,13 @@ class RobotStateBuffer:
     def append_many(self, ts: list[int], qs: list[FloatArray], poses: list[FloatArray]) -> bool:
         """:meth:`append` of samples whose times increase past the last one (a tick's), at once:
         True; False (nothing added) otherwise, or when they need the room made first."""
-        buf, n = self._buf, len(ts)
-        i = buf._i1
-        if i + n > buf._t.shape[0] or not all(a < b for a, b in itertools.pairwise(ts)):
+        buf = self._buf
+        rows = buf._rows_for(ts)
+        if rows is None:
             return False
-        if i > buf._i0 and ts[0] <= buf._t[i - 1]:
-            return False
-        buf._v[i : i + n, :6] = qs
-        buf._v[i : i + n, 6:] = poses
-        buf._t[i : i + n] = ts
-        buf._i1 = i + n
-        buf._i0 = max(buf._i0, buf._i1 - buf.capacity)
+        buf._v[rows, :6] = qs  # written in place, as append does
+        buf._v[rows, 6:] = poses
+        buf._commit_many(rows, ts)
         return True
 
     def interpolate(self, t_ns: ArrayLike) -> tuple[FloatArray, NDArray[np.bool_], ReasonArray]:
