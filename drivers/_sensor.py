@@ -110,7 +110,8 @@ class SensorCore(ProfileSensor):
                 own = mine
         lost = None if own is not None else self._block_lost(block.frame_counter, modulo)
         if lost is not None:
-            self.counters.lost += lost
+            if lost:
+                self._count_missing(lost)
             self._last_counter = int(block.frame_counter[-1]) % modulo
             self._last_delivered_ns = int(block.host_time_ns[-1])
             if self.expected_sensor_id is None:

@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from wristscan.drivers import _mmsg
+from wristscan.drivers import _bpf, _mmsg
 from wristscan.drivers._sensor import SensorCore
 from wristscan.drivers.base import DriverInitError, DriverIOError
 from wristscan.drivers.records import Profile, ProfileBlock
@@ -204,6 +204,9 @@ class UdpProfileSensor(SensorCore):
         self._last_rx_ns: int | None = None
         self.kernel_stamps = False
         """Receipt stamps come from the kernel (``SO_TIMESTAMPNS``), not the reading thread."""
+        self.admission: float | None = None
+        """The fraction of profile frames the kernel lets through (None: all), see
+        :meth:`set_admission`."""
 
     # --- life cycle -------------------------------------------------------------------------
     @property
@@ -228,6 +231,7 @@ class UdpProfileSensor(SensorCore):
         host, port = sock.getsockname()[:2]
         self.local_address = (str(host), int(port))
         self._sock, self._poll = sock, poll
+        self.admission, self._gaps_shed = None, False
         self._ready.clear()
         self._last_rx_ns = None
         self._reset_decoder()
@@ -340,6 +344,7 @@ class UdpProfileSensor(SensorCore):
         if held:
             out += ProfileBlock.from_profiles(held)
             budget -= len(held)
+        more = True
         while budget > 0:
             grams, got, more = self._receive(budget)
             if grams is not None:
@@ -347,8 +352,38 @@ class UdpProfileSensor(SensorCore):
             budget -= got
             if not more:
                 break
+        if not more and self.admission is None:
+            self._gaps_shed = False  # what was queued under a filter has been read
         self.counters.received += sum(b.n_profiles for b in out)
         return out
+
+    def set_admission(self, fraction: float | None) -> bool:
+        """Let the kernel pass only ``fraction`` of the profile frames (a socket filter,
+        :mod:`._bpf`: evenly spread by frame counter, decided before the datagrams are queued,
+        so the reading thread never pays for the shed ones); None or >= 1 removes it. False
+        when the driver has no filter for its frames, or the system none at all. Gaps are
+        counted as ``shed`` from now until the socket has been drained after the removal (the
+        datagrams queued before the filter was set count so too, though they were not
+        filtered: under overload their losses are overload's)."""
+        sock = self._sock
+        want = None if fraction is None or fraction >= 1.0 else max(float(fraction), 1e-6)
+        if sock is None or not _bpf.available():
+            return False
+        if want is None:
+            if self.admission is not None:
+                _bpf.detach(sock)
+                self.admission = None
+            return True
+        program = self._admission_program(want)
+        if program is None:
+            return False
+        try:
+            _bpf.attach(sock, program)
+        except OSError as exc:
+            log.warning("%s: the kernel refused the admission filter: %s", self.kind, exc)
+            return False
+        self.admission, self._gaps_shed = want, True
+        return True
 
     def _rows_for(self, limit: int) -> int:
         """Rows of this pass (the buffer and its row views made again when the stride grew)."""
@@ -519,12 +554,18 @@ class UdpProfileSensor(SensorCore):
             "rcvbuf_bytes": self.rcvbuf_bytes,
             "stale": self.stale,
             "kernel_stamps": self.kernel_stamps,
+            "admission": self.admission,
             "last_rx_age_s": None if last is None else (time.monotonic_ns() - last) * 1e-9,
         }
 
     # --- for subclasses ---------------------------------------------------------------------
     def _reset_decoder(self) -> None:
         """Forget partial state (fragments) when the socket is (re)opened."""
+
+    def _admission_program(self, fraction: float) -> list[_bpf.Instruction] | None:
+        """The socket filter keeping ``fraction`` of this driver's profile frames (None: the
+        driver has none)."""
+        return None
 
     @abstractmethod
     def _on_datagram(self, frame: memoryview, host_time_ns: int) -> None:

@@ -132,6 +132,9 @@ class Counters:
     """Frames rejected by the decoder (truncated, bad CRC, bad checksum, garbage)."""
     lost: int = 0
     """Records the device sent that never arrived, from frame-counter gaps."""
+    shed: int = 0
+    """Records shed on purpose before they were read (kernel-side admission under overload,
+    :meth:`ProfileSensor.set_admission`): the frame-counter gaps while it is in force."""
     duplicates: int = 0
     """Records suppressed because their counter was already delivered."""
     reordered: int = 0
@@ -329,6 +332,20 @@ class ProfileSensor(Device[Profile]):
         self._last_counter: int | None = None
         """The frame counter of the last delivered profile (None: no history)."""
         self._held_error: DriverError | None = None
+        self._gaps_shed = False
+        """Frame-counter gaps are booked as ``shed``, not ``lost`` (admission in force)."""
+
+    def set_admission(self, fraction: float | None) -> bool:
+        """Admit only ``fraction`` of the profile frames, evenly spread, shedding the rest
+        before they are read (None or 1: all); the gaps are counted as ``shed``. False when
+        this driver cannot shed before reading (the caller sheds after reading instead)."""
+        return False
+
+    def _count_missing(self, n: int) -> None:
+        if self._gaps_shed:
+            self.counters.shed += n
+        else:
+            self.counters.lost += n
 
     def read_blocks(self, max_profiles: int = 4096) -> list[ProfileBlock]:
         """What the driver holds now, without waiting, as blocks of profiles of equal length
@@ -366,7 +383,8 @@ class ProfileSensor(Device[Profile]):
         if step > modulo // 2:  # behind the last delivered frame: late or duplicated
             self.counters.reordered += 1
             return False
-        self.counters.lost += step - 1
+        if step > 1:
+            self._count_missing(step - 1)
         self._last_counter = counter
         return True
 

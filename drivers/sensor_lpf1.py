@@ -19,7 +19,7 @@ from typing import Any, ClassVar
 
 from cobs import cobs
 
-from wristscan.drivers import lpf1, lpf1_block
+from wristscan.drivers import _bpf, lpf1, lpf1_block
 from wristscan.drivers._sensor import SensorCore
 from wristscan.drivers._stream import Chunk, StreamProfileSensor, TcpTransport, Transport, open_url
 from wristscan.drivers._udp import Datagrams, UdpProfileSensor
@@ -120,6 +120,10 @@ class Lpf1UdpSensor(UdpProfileSensor):
 
     def _reset_decoder(self) -> None:
         self.lpf1.reset()
+
+    def _admission_program(self, fraction: float) -> list[_bpf.Instruction]:
+        # The header's msg_type (byte 6) and the low half of frame_counter (bytes 16-19).
+        return _bpf.counter_filter(fraction, 16, lpf1.HEADER_LEN, 6, int(lpf1.MsgType.PROFILE))
 
     def _on_datagram(self, frame: memoryview, host_time_ns: int) -> None:
         try:

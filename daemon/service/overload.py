@@ -18,18 +18,29 @@ the same factor at each step where the lag still rises; once the lag is below ha
 ``max_lag_s`` the rate is raised by ``increase`` every ``step_s`` (behind, the worker works in
 bigger, cheaper batches than while catching up), and shedding stops when the rate is far above
 the arrivals. A token bucket spreads the admitted rate over the ticks.
+
+Shed profiles read and decoded cost the reading all the same: at twice the capacity that is
+most of the worker's time (the 3-10 % of capacity docs/pipeline.md reports before this step).
+So a sensor driver that can shed before reading (``ProfileSensor.set_admission``: the UDP
+sensors' socket filter) is asked to let through only slightly more than the admission rate
+(:class:`KernelAdmission`), and the token bucket sheds the remainder after reading; the frames
+the kernel shed come back as frame-counter gaps, counted as ``overload`` too.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
 from numpy.typing import NDArray
 
+from wristscan.drivers.base import ProfileSensor
 from wristscan.drivers.records import ProfileBlock
 
-__all__ = ["Shedder", "spread_rows", "take_rows"]
+__all__ = ["KernelAdmission", "Shedder", "spread_rows", "take_rows"]
+
+log = logging.getLogger(__name__)
 
 
 def spread_rows(n_in: int, n_keep: int) -> NDArray[np.intp]:
@@ -82,15 +93,28 @@ class Shedder:
         self._last_ns: int | None = None
         self._step_ns = 0
         self._kept = 0
+        self._arrived = 0
+        self.admitted = 1.0
+        """The fraction of the arrivals admitted over the last step."""
         self._lag_last = 0.0
         self._behind = 0
 
-    def admit(self, n_in: int, now_ns: int, oldest_ns: int | None = None) -> int:
+    def admit(
+        self,
+        n_in: int,
+        now_ns: int,
+        oldest_ns: int | None = None,
+        available: int | None = None,
+        period_s: float = 0.0,
+    ) -> int:
         """How many of the ``n_in`` profiles that arrived since the last call go on;
-        ``oldest_ns`` is the receipt (host monotonic) of the oldest of them."""
+        ``oldest_ns`` is the receipt (host monotonic) of the oldest of them, ``available`` how
+        many of them are still there to go on (the others were shed before reading),
+        ``period_s`` the caller's tick period (waiting for its tick is no lag)."""
         last, self._last_ns = self._last_ns, now_ns
         dt = 0.0 if last is None else max(0.0, (now_ns - last) * 1e-9)
-        self.lag_s = 0.0 if oldest_ns is None or not n_in else max(0.0, (now_ns - oldest_ns) * 1e-9)
+        age = 0.0 if oldest_ns is None or not n_in else (now_ns - oldest_ns) * 1e-9
+        self.lag_s = max(0.0, age - period_s)
         if now_ns - self._step_ns >= self.step_s * 1e9:
             self._step(now_ns)
         if math.isinf(self.limit):
@@ -98,10 +122,14 @@ class Shedder:
         else:
             self._tokens = min(self.limit * self.step_s, self._tokens + self.limit * dt)
             keep = min(n_in, int(self._tokens))
+        if available is not None:
+            keep = min(keep, available)
+        if math.isfinite(self.limit):
             self._tokens -= keep
         if dt > 0.0:
             self.rate_in += min(1.0, dt / self.window_s) * (n_in / dt - self.rate_in)
         self._kept += keep
+        self._arrived += n_in
         self.shedding = keep < n_in
         self.shed += n_in - keep
         return keep
@@ -112,7 +140,8 @@ class Shedder:
         # A tick processes what it admits: profiles admitted per second are its throughput.
         throughput = self._kept / wall_s if self._step_ns and wall_s > 0 else 0.0
         rising = self.lag_s > self._lag_last
-        self._step_ns, self._kept, self._lag_last = now_ns, 0, self.lag_s
+        self.admitted = self._kept / self._arrived if self._arrived else 1.0
+        self._step_ns, self._kept, self._arrived, self._lag_last = now_ns, 0, 0, self.lag_s
         # Behind at two steps running: one late tick is a pause (the worker stopped, starved
         # for a moment), whose backlog it works off in one big batch.
         self._behind = self._behind + 1 if self.lag_s > self.max_lag_s else 0
@@ -129,6 +158,11 @@ class Shedder:
             self.limit *= self.increase
             if self.limit > 1.5 * self.rate_in:
                 self.limit = math.inf
+
+    @property
+    def limiting(self) -> bool:
+        """An admission rate is in force (shedding, or probing upwards after it)."""
+        return math.isfinite(self.limit)
 
     def status(self) -> dict[str, float | bool | int | None]:
         """For ``stats``: shedding, the lag (s), the rates (profiles/s)."""
@@ -153,3 +187,45 @@ def take_rows(blocks: list[ProfileBlock], rows: NDArray[np.intp]) -> list[Profil
             out.append(b if hi - lo == b.n_profiles else b.take(rows[lo:hi] - start))
         start = end
     return out
+
+
+class KernelAdmission:
+    """Steers a sensor's shedding before reading from what a :class:`Shedder` admits: the
+    sensor lets ``slack`` times the fraction admitted over the last step through (the token
+    bucket sheds the remainder after reading; a higher rate is followed by ``slack`` a step),
+    everything once the shedder stops."""
+
+    slack = 1.1
+    change = 0.02
+    """Relative change of the fraction below which the filter is left as it is."""
+
+    def __init__(self, sensor: ProfileSensor, enabled: bool) -> None:
+        self.sensor = sensor
+        self.enabled = enabled
+        self.fraction: float | None = None
+        """The fraction in force (None: everything passes)."""
+        self._seen = sensor.counters.shed
+
+    def shed_since(self) -> int:
+        """Profiles the sensor shed before reading since the last call."""
+        n = self.sensor.counters.shed - self._seen
+        self._seen += n
+        return n
+
+    def steer(self, shedder: Shedder) -> None:
+        """Set the sensor's admission for the shedder's rate in force and arrival rate."""
+        if not self.enabled:
+            return
+        f: float | None = None
+        if shedder.limiting and self.slack * shedder.admitted < 1.0:
+            f = max(0.01, self.slack * shedder.admitted)
+        old = self.fraction
+        if (f is None and old is None) or (
+            f is not None and old is not None and abs(f - old) <= self.change * old
+        ):
+            return
+        if self.sensor.set_admission(f):
+            self.fraction = f
+        elif f is not None:
+            self.enabled = False
+            log.info("%s cannot shed before reading: shedding after reading", self.sensor.kind)

@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 from wristscan.calib import align, jit
 from wristscan.daemon.cloud import wsc1
 from wristscan.daemon.service.instruments import STEPS, LatencyWindow, StepCpu
-from wristscan.daemon.service.overload import Shedder, spread_rows, take_rows
+from wristscan.daemon.service.overload import KernelAdmission, Shedder, spread_rows, take_rows
 from wristscan.daemon.service.publisher import Outgoing, Publisher
 from wristscan.daemon.service.readers import Reader, name_os_thread
 from wristscan.daemon.service.settings import AlignmentSetup, PipelineSettings
@@ -111,6 +111,7 @@ class Pipeline:
         self._utc_offset_ns = time.time_ns() - time.monotonic_ns()
         self._sensor_stamped = sensor.stamped_on_receipt
         self.inline_sensor = self._sensor_stamped if s.inline_sensor is None else s.inline_sensor
+        self._kernel = KernelAdmission(sensor, s.shed_overload and self.inline_sensor)
         self.read_errors: Counter[str] = Counter()
         """Driver errors met while reading inline, by device (the drivers reconnect)."""
         self._readers = self._make_readers()
@@ -199,7 +200,7 @@ class Pipeline:
         with self._tick_lock:
             p = self.pairer.stats()
             queued = len(self._profiles) + self._blocks_n
-            overload = self.shedder.status()
+            overload = {**self.shedder.status(), "kernel_fraction": self._kernel.fraction}
             with self._lock:
                 dropped = dict(self.dropped)
                 published = self.published_profiles
@@ -354,22 +355,25 @@ class Pipeline:
         blocks, self._blocks = self._blocks, []
         n_in, self._blocks_n = self._blocks_n, 0
         # The arrival rate (profiles/s) over the last ticks, for the read-ahead's pace.
-        self._rate_in += 0.3 * (n_in / self.settings.batch_s - self._rate_in)
+        self._rate_in += 0.3 * (n_in / self._period() - self._rate_in)
         records = self._profiles
         if records:
             taken = [records.popleft() for _ in range(len(records))]
             blocks += ProfileBlock.from_profiles(taken)
             n_in += len(taken)
-        if not n_in:
-            self.shedder.admit(0, time.monotonic_ns())
-            return
+        kernel = self._kernel.shed_since()  # shed before reading (counter gaps)
         keep = n_in
-        if self.settings.shed_overload:
+        if not n_in:
+            self.shedder.admit(kernel, time.monotonic_ns(), None, 0)
+        elif self.settings.shed_overload:
             oldest = min(int(b.host_time_ns[0]) for b in blocks)
-            keep = self.shedder.admit(n_in, time.monotonic_ns(), oldest)
-        if keep < n_in:
+            now, period = time.monotonic_ns(), self._period()
+            keep = self.shedder.admit(n_in + kernel, now, oldest, n_in, period)
+        self._kernel.steer(self.shedder)
+        if keep < n_in or kernel:
             with self._lock:
-                self.dropped["overload"] += n_in - keep
+                self.dropped["overload"] += n_in - keep + kernel
+        if keep < n_in:
             blocks = take_rows(blocks, spread_rows(n_in, keep))
         for b in blocks:
             self.pairer.add_block(b)
@@ -495,9 +499,17 @@ class Pipeline:
             self.published_profiles += item.n_profiles
             self.published_points += item.n_points
 
+    def _period(self) -> float:
+        """The tick period (s): ``batch_s``; while an admission rate is in force, half the lag
+        bound instead, so that the worker pays its cost per tick less often (the latency is
+        bounded by the lag then, not by the tick)."""
+        s = self.settings
+        return max(s.batch_s, 0.5 * s.overload_lag_s) if self.shedder.limiting else s.batch_s
+
     def _wait_for_tick(self, tick: float) -> bool:
-        """Sleep until the monotonic time ``tick``, reading ahead meanwhile; True to stop."""
-        step = self.settings.read_ahead_s
+        """Sleep until the monotonic time ``tick``, reading ahead meanwhile (not while an
+        admission rate is in force: the socket holds a tick); True to stop."""
+        step = 0.0 if self.shedder.limiting else self.settings.read_ahead_s
         if step > 0 and self._rate_in > 0:
             step = max(step, self.settings.read_ahead_profiles / self._rate_in)
         while True:
@@ -531,15 +543,14 @@ class Pipeline:
 
     def _work(self) -> None:
         name_os_thread(self._worker.name)
-        period = self.settings.batch_s
         next_status = time.monotonic() + self.settings.status_period_s
-        next_tick = time.monotonic() + period
+        next_tick = time.monotonic() + self._period()
         try:
             while True:
                 # Ticks on a fixed schedule (the work of a tick does not stretch the period,
                 # which would add to every profile's latency); missed ticks are not made up.
                 stopping = self._wait_for_tick(next_tick)
-                next_tick = max(next_tick + period, time.monotonic())
+                next_tick = max(next_tick + self._period(), time.monotonic())
                 with self._tick_lock:
                     self._tick_ns = t0 = time.monotonic_ns()
                     cpu0 = time.thread_time_ns()
