@@ -7,9 +7,11 @@ compaction of invalid points, the finiteness check) and 2.0-2.5 us compiled with
 valid, 4.4-6.7 us with 26-30 % invalid (benchmarks/calib_align.py ``--hot``). The LPF1 reader's
 usual pass (headers checked, fields and integer codes copied: :mod:`wristscan.drivers.lpf1_block`),
 ``recvmmsg``'s results, frame-counter steps and the pairer's forward kinematics are kernels too,
-each one call where numpy takes many small ones (docs/pipeline.md, "Sixth session"). The
-kernels are compiled when first asked for (:func:`warm`; ~0.3-0.6 s, then loaded from numba's
-on-disk cache) so that a process that never aligns never imports numba.
+each one call where numpy takes many small ones (docs/pipeline.md, "Sixth session"), and so is
+the synchroniser's arithmetic per tick (:mod:`wristscan.calib.jit_clock`: clock feed, fit and
+mapping, bit for bit numpy's). The kernels are compiled when first asked for (:func:`warm`;
+~5 s, then ~0.6 s loaded from numba's on-disk cache) so that a process that never aligns never
+imports numba.
 
 Without numba, or with the environment variable ``WRISTSCAN_JIT=0``, every caller takes its
 numpy path; the alignments agree to float32 rounding (tests/calib/test_align_rows.py runs both),
@@ -24,6 +26,8 @@ import threading
 import time
 from collections.abc import Callable
 from typing import Any
+
+from wristscan.calib import jit_clock
 
 log = logging.getLogger(__name__)
 
@@ -120,6 +124,7 @@ def _exercise(ks: dict[str, Callable[..., Any]]) -> None:
         np.empty(2, np.int64),
     )  # fmt: skip
     ks["same_headers"](words, one, 9, words, one, np.uint64(1), np.empty((5, 1), np.uint64))
+    jit_clock.exercise(ks)
 
 
 def _njit(numba: Any, **options: Any) -> Callable[[Callable[..., Any]], Any]:
@@ -139,9 +144,11 @@ def _njit(numba: Any, **options: Any) -> Callable[[Callable[..., Any]], Any]:
 
 def _compile(numba: Any) -> dict[str, Callable[..., Any]]:
     """The kernels, jitted lazily (compiled at their first call, cached on disk)."""
+    dh_forward = _kinematics_kernel(numba)
     return {
+        **jit_clock.kernels(numba, _njit, dh_forward),
         "align_rows": _align_kernel(numba),
-        "dh_forward": _kinematics_kernel(numba),
+        "dh_forward": dh_forward,
         **_decode_kernels(numba),
         **_receive_kernels(numba),
     }

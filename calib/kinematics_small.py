@@ -29,6 +29,14 @@ def _dh_constants(model: DHParams) -> tuple[FloatArray, ...]:
 
 
 @functools.lru_cache(maxsize=64)
+def dh_table(model: DHParams) -> FloatArray:
+    """``theta_offset``, ``cos alpha``, ``sin alpha``, ``a``, ``d`` as the rows of one (5, 6)
+    array: the constants the compiled kernels take (``dh_forward`` and those that call it)."""
+    off, ca, sa, a, d = _dh_constants(model)
+    return np.stack([off, ca[:, 0], sa[:, 0], a[:, 0], d[:, 0]])
+
+
+@functools.lru_cache(maxsize=64)
 def _dh_rows(model: DHParams) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """``theta_offset`` and the DH matrices ``Rz Tz Tx Rx`` of the six joints as constants:
     their first two rows are ``cos theta * Kc + sin theta * Ks`` (``(6, 8, 1)``: the rows'

@@ -18,16 +18,25 @@ a locked line by more than the re-anchor tolerance, a pending step-back suspicio
 clock, an epoch to open) goes through ``feed``, and the fast path is tried again after it (a
 pending suspicion keeps the following arrivals on ``feed`` until it is settled).
 :func:`feed_lists` is the same for a few arrivals given as lists (a tick's robot states).
+
+With the compiled kernels in use (:mod:`wristscan.calib.jit_clock`, extra ``fast``) a segment's
+arithmetic (its end, the causality check, each bucket's lowest point) is one call
+(``feed_segment``: the steps and bits of :func:`_fast_segment`) for blocks of any size, a
+tick's robot states included; without them, blocks of up to 48 arrivals take Python numbers
+(:func:`_small_segment`) and larger ones the numpy steps.
 """
 
 from __future__ import annotations
 
 import itertools
 import math
-from typing import TYPE_CHECKING
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
+
+from wristscan.calib import jit
 
 if TYPE_CHECKING:
     from wristscan.daemon.sync.clockmap import ClockMapper
@@ -52,11 +61,14 @@ def feed_block(cm: ClockMapper, xs: IntArray, ys: IntArray) -> IntArray:
     n = int(xs.shape[0])
     out = np.empty(n, dtype=np.int64)
     i = 0
-    lists = (xs.tolist(), ys.tolist()) if n <= _SMALL else None
+    kern = jit.kernel("feed_segment")
+    if kern is not None:  # the layout it was compiled for (strided views: one copy)
+        xs, ys = np.ascontiguousarray(xs), np.ascontiguousarray(ys)
+    lists = (xs.tolist(), ys.tolist()) if n <= _SMALL and kern is None else None
     while i < n:
         j = -1 if lists is None else _small_segment(cm, lists[0], lists[1], i)
         if j < 0:
-            j = _fast_segment(cm, xs, ys, i)
+            j = _fast_segment(cm, xs, ys, i) if kern is None else _compiled(cm, kern, xs, ys, i)
         if j > i:
             out[i:j] = cm.epoch
             i = j
@@ -72,6 +84,16 @@ def feed_lists(cm: ClockMapper, xs: list[int], ys: list[int]) -> None:
     the epochs: a few arrivals take the scalar path with no array made (the same steps)."""
     n = len(xs)
     i = 0
+    kern = jit.kernel("feed_segment")
+    if kern is not None:  # compiled: no Python steps per arrival, no epochs kept
+        ax, ay = np.array(xs, dtype=np.int64), np.array(ys, dtype=np.int64)
+        while i < n:
+            j = _compiled(cm, kern, ax, ay, i)
+            if j == i:
+                cm.feed(xs[i], ys[i])  # unusual: as feed_block does
+                j += 1
+            i = j
+        return
     while i < n:
         j = _small_segment(cm, xs, ys, i) if n <= _SMALL else -1
         if j < 0:
@@ -124,6 +146,43 @@ def _fast_segment(cm: ClockMapper, xs: IntArray, ys: IntArray, i: int) -> int:
     if refit:
         cm._refit()
     return i + end
+
+
+def _compiled(cm: ClockMapper, kern: Callable[..., Any], xs: IntArray, ys: IntArray, i: int) -> int:
+    """:func:`_fast_segment` with its arithmetic in one compiled call (``feed_segment``, the
+    same steps and bits: :mod:`wristscan.calib.jit_clock`), the bookkeeping as there."""
+    line = cm._line
+    if cm._n == 0 or cm._excess or cm._stuck_n or line is None:
+        return i
+    cfg = cm.config
+    interval = cfg.refit_interval_ns if cm.locked else cfg.bucket_ns
+    tol = cfg.reanchor_tolerance_ns
+    # Tuples (no arrays made) of the types the kernel was compiled for.
+    params = (line.a, line.d, line.u0**2, line.u_slope, line.x_e, cfg.bucket_ns)
+    stop = min(int(xs.shape[0]), i + _LOOKAHEAD)
+    out_b, out_xr = np.empty(stop - i, dtype=np.int64), np.empty((stop - i, 2))
+    end, refit, nb = kern(
+        xs, ys, i, stop, int(cm._x_last), int(cm._last_fit_x + interval),
+        (int(cm._x_ref), int(cm._y_ref)), tuple(map(float, params)), bool(cm._ever_locked),
+        -(tol + 3.0 * line.u0), float(tol), out_b, out_xr,
+    )  # fmt: skip
+    if end == i:
+        return i
+    m = end - i
+    cm.n_fed += m
+    cm._n += m
+    keep = max(i, end - (cm._recent.maxlen or m))
+    cm._recent.extend(zip(xs[keep:end].tolist(), ys[keep:end].tolist(), strict=True))
+    cm._x_last = int(xs[end - 1])
+    bb = out_b[:nb].tolist()
+    if bb[-1] - bb[0] < _FEW_BUCKETS:  # as _add_many decides: a few buckets one by one
+        for b, (dx, r) in zip(bb, out_xr[:nb].tolist(), strict=True):
+            _bucket_point(cm, b, dx, r, line.d)
+    else:
+        _merge_buckets(cm, bb, out_xr[:nb, 0], out_xr[:nb, 1], line.d)
+    if refit:
+        cm._refit()
+    return end
 
 
 def _small_segment(cm: ClockMapper, xs: list[int], ys: list[int], i: int) -> int:
@@ -226,7 +285,14 @@ def _add_many(
     ends = np.append(starts[1:], m)
     pos = np.flatnonzero(g == np.repeat(low, ends - starts))
     first = pos[np.searchsorted(pos, starts)]
-    bb, bx, br = b[starts].tolist(), dx[first], r[first]
+    _merge_buckets(cm, b[starts].tolist(), dx[first], r[first], d)
+
+
+def _merge_buckets(
+    cm: ClockMapper, bb: list[int], bx: FloatArray, br: FloatArray, d: float
+) -> None:
+    """Buckets ``bb`` (increasing) with their lowest points ``(bx, br)`` against the drift
+    ``d``, after the open one: merged with it, the closed ones pushed to the window."""
     if bb[0] == cm._ob:
         # Continues the open bucket: keep the lower of the two (the open one on a tie).
         if not br[0] - d * bx[0] < cm._or - d * cm._ox:

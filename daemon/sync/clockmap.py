@@ -89,6 +89,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from wristscan.calib import jit
 from wristscan.daemon.sync.clockconfig import ClockConfig
 from wristscan.daemon.sync.clockfeed import feed_block
 from wristscan.daemon.sync.envelope import EnvelopeLine, Fit, fit_window, newer_floor
@@ -382,6 +383,11 @@ class ClockMapper:
         m = self.config.max_drift
         bx = self._bx[b0:b1]
         br = self._br[b0:b1]
+        kern = jit.kernel("prune_buckets")  # compiled: the same buckets kept
+        if kern is not None:
+            margin = float(self.config.prune_margin_ns)
+            self._b1 = b0 + kern(bx, br, m, self._or + m * self._ox, margin)
+            return
         key = br + m * bx
         later = np.empty_like(key)
         later[-1] = self._or + m * self._ox

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from wristscan.calib import jit
 from wristscan.daemon.sync.clockconfig import ClockConfig
 
 __all__ = ["EnvelopeLine", "fit_window", "newer_floor", "support_slope"]
@@ -213,16 +214,12 @@ def fit_window(
     f = cfg.eval_fraction
     x0 = float(X.min())
     x_e = x0 + f * span
-    d = support_slope(X, R, x_e, lo, hi, None if line is None else line.d, span)
+    xq = (x0 + max(f - 0.25, 0.0) * span, x0 + min(f + 0.25, 1.0) * span)
     # Uncertainty: the same estimator on the even and on the odd buckets gives two
     # independent half-data estimates; half their difference is of the order of the full
     # estimate's error whatever the delay distribution. Windowed RMS: one split is a noisy
     # scale; old (early, poor) fits drop out.
-    Ga, Gb = warm_ends(X, R, lo, hi, d)  # the four searches from d share their bracket
-    d1 = support_slope(X[0::2], R[0::2], x_e, lo, hi, d, ends=(Ga[0::2], Gb[0::2]))
-    d2 = support_slope(X[1::2], R[1::2], x_e, lo, hi, d, ends=(Ga[1::2], Gb[1::2]))
-    v1 = float((R[0::2] - d1 * X[0::2]).min()) + d1 * x_e
-    v2 = float((R[1::2] - d2 * X[1::2]).min()) + d2 * x_e
+    d, d1, d2, v1, v2, dq = _searches(X, R, x_e, xq, lo, hi, line, span)
     dv = 0.5 * (v1 - v2)
     dd = cfg.max_drift if clipped(d1) or clipped(d2) else 0.5 * (d1 - d2)
     u_hist.append((dv * dv, dd * dd))
@@ -240,11 +237,6 @@ def fit_window(
     # longer than the rest of the window), the hull edge spanning x_e tilts towards it.
     # The edges spanning the quartiles then disagree by more than the noise: the data do
     # not determine the drift, so it stays where it was (a clock's drift changes slowly).
-    xq = (x0 + max(f - 0.25, 0.0) * span, x0 + min(f + 0.25, 1.0) * span)
-    dq = (
-        support_slope(X, R, xq[0], lo, hi, d, span, (Ga, Gb)),
-        support_slope(X, R, xq[1], lo, hi, d, span, (Ga, Gb)),
-    )
     if abs(dq[0] - dq[1]) > max(6.0 * u_slope, 0.01 * cfg.typical_drift):
         ref = line.d if line is not None else pd
         G = R - ref * X
@@ -259,6 +251,41 @@ def fit_window(
     u_slope = us * pu / math.sqrt(us * us + pu * pu)
     a = float((R - d * X).min())
     return d, a, x_e, u0, u_slope
+
+
+def _searches(
+    X: FloatArray,
+    R: FloatArray,
+    x_e: float,
+    xq: tuple[float, float],
+    lo: float,
+    hi: float,
+    line: EnvelopeLine | None,
+    span: float,
+) -> tuple[float, float, float, float, float, tuple[float, float]]:
+    """:func:`fit_window`'s five slope searches: at ``x_e`` (from the previous slope), of the
+    even and of the odd points with their envelopes' values at ``x_e``, at the quartiles
+    ``xq``. One compiled call when the kernels are in use (the same steps, the same bits:
+    :mod:`wristscan.calib.jit_clock`), else :func:`support_slope` five times."""
+    kern = jit.kernel("fit_slopes")
+    guess = None if line is None else line.d
+    if kern is not None and X.dtype == np.float64 and R.dtype == np.float64:
+        g = 0.0 if guess is None else guess
+        d, d1, d2, v1, v2, q0, q1 = kern(
+            X, R, x_e, xq[0], xq[1], lo, hi, g, guess is not None, span
+        )
+        return d, d1, d2, v1, v2, (q0, q1)
+    d = support_slope(X, R, x_e, lo, hi, guess, span)
+    Ga, Gb = warm_ends(X, R, lo, hi, d)  # the four searches from d share their bracket
+    d1 = support_slope(X[0::2], R[0::2], x_e, lo, hi, d, ends=(Ga[0::2], Gb[0::2]))
+    d2 = support_slope(X[1::2], R[1::2], x_e, lo, hi, d, ends=(Ga[1::2], Gb[1::2]))
+    v1 = float((R[0::2] - d1 * X[0::2]).min()) + d1 * x_e
+    v2 = float((R[1::2] - d2 * X[1::2]).min()) + d2 * x_e
+    dq = (
+        support_slope(X, R, xq[0], lo, hi, d, span, (Ga, Gb)),
+        support_slope(X, R, xq[1], lo, hi, d, span, (Ga, Gb)),
+    )
+    return d, d1, d2, v1, v2, dq
 
 
 Fit = tuple[float, float, float, float, float, float]

@@ -43,6 +43,7 @@ from wristscan.daemon.sync.clockmap import ClockMapper
 from wristscan.daemon.sync.counters import CounterUnwrapper, unwrap_nearest
 from wristscan.daemon.sync.pairconfig import PairerConfig
 from wristscan.daemon.sync.pending import PendingProfiles
+from wristscan.daemon.sync.readytick import poll_all_ready
 from wristscan.drivers.records import Profile, ProfileBlock, RobotState, TableState
 
 logger = logging.getLogger(__name__)
@@ -99,8 +100,6 @@ _ROBOT_STATUS = _status_of(NOT_YET=_W_ROBOT, BEFORE_BUFFER=_D_BEFORE, GAP=_D_GAP
 _TABLE_STATUS = _status_of(NOT_YET=_W_TABLE, BEFORE_BUFFER=_D_TABLE_BEFORE, GAP=_D_TABLE_GAP)
 _ENCODER_STATUS = _status_of(NOT_YET=_W_ENCODER, BEFORE_BUFFER=_D_ENC_BEFORE)
 """Encoder mode: a gap between counts is no reason by itself (the time gap is checked)."""
-
-_NO_ROWS = np.zeros(0, dtype=np.int64)
 
 DROP_REASONS: tuple[str, ...] = (
     *sorted(set(_REASON_OF.values())),
@@ -389,42 +388,9 @@ class Pairer:
         return batches
 
     def _poll_all_ready(self) -> list[PairedBatch] | None:
-        """:meth:`poll` when every pending profile can be paired now (the usual tick: one sensor
-        epoch, clocks locked, states covering every exposure, no table): the same batches
-        without the per-profile status arrays; None (nothing done) otherwise."""
-        pend = self._pending
-        key = pend.single_key()
-        cfg = self.config
-        if key is None or cfg.mode != "clock" or cfg.use_table or not self.robot_clock.locked:
-            return None
-        clk = self._sensor_clocks[key[0]]
-        if not clk.is_locked(key[1]):
-            return None
-        x = pend.x
-        exposure = clk.to_host(x, key[1])
-        t_robot = self.robot_clock.to_device(exposure)
-        F = self.robot.poses_if_covered(t_robot)
-        if F is None:
-            return None
-        self._need_ns = {}
-        self.waiting_for_states = 0
-        unc = clk.uncertainty_ns(x, key[1])
-        P = int(x.shape[0])
-        step = cfg.max_batch_profiles
-        sels: list[slice] | list[IntArray]
-        if P == 1 or bool((exposure[1:] >= exposure[:-1]).all()):
-            # In exposure order already (the usual tick): the batches take slices of this
-            # poll's arrays, not copies (the stable sort would keep this order).
-            sels = [slice(k, min(k + step, P)) for k in range(0, P, step)]
-        else:
-            ready = np.argsort(exposure, kind="stable")
-            sels = [ready[k : k + step] for k in range(0, P, step)]
-        host = pend.host
-        batches = [self._batch(sel, exposure, unc, F, None, host) for sel in sels]
-        self.paired += P
-        self.batches += len(batches)
-        pend.keep(_NO_ROWS)
-        return batches
+        """:meth:`poll` when every pending profile can be paired now (the usual tick): the same
+        batches without the per-profile status arrays (:mod:`.readytick`); None otherwise."""
+        return poll_all_ready(self)
 
     def merge(self, batches: list[PairedBatch]) -> list[PairedBatch]:
         """Consecutive batches joined (up to ``max_batch_profiles`` profiles each), in order."""

@@ -104,6 +104,8 @@ class PendingProfiles:
         self._staged: list[Profile] = []
         self._staged_xe: list[tuple[int, int]] = []
         self._n = 0
+        self._whole = False  # the table is one block's rows 0, 1, ... in order
+        self._chunk_whole = False  # so is the last chunk queued
         self._skip = 0  # oldest profiles dropped but not yet removed from the table
         self._keys: set[tuple[int, int]] | None = set()
         """(sensor id, epoch) pairs of the pending profiles, a superset (None: not known)."""
@@ -177,6 +179,7 @@ class PendingProfiles:
             )
         self.blocks.append(block)
         self._chunks.append(t)
+        self._chunk_whole = rows is None
         self._n += n
 
     def add_record(self, profile: Profile, x: int, epoch: int) -> None:
@@ -229,8 +232,10 @@ class PendingProfiles:
         if self._chunks:
             if self.table.shape[1] == 0 and len(self._chunks) == 1:
                 self.table = self._chunks[0]  # the usual tick: nothing held over, one block
+                self._whole = self._chunk_whole
             else:
                 self.table = np.concatenate([self.table, *self._chunks], axis=1)
+                self._whole = False
             self._chunks = []
         if self._skip:
             skip, self._skip = self._skip, 0
@@ -244,6 +249,7 @@ class PendingProfiles:
         assert not (self._chunks or self._staged or self._skip), "consolidate() first"
         self.table = self.table[:, idx]
         self._n = int(idx.shape[0])
+        self._whole = False
         self._prune()
 
     def _prune(self) -> None:
@@ -325,10 +331,13 @@ class PendingProfiles:
     def _gather_run(self, sel: IntArray | slice, P: int) -> Gathered | None:
         """:meth:`gather` when one block is held and ``sel`` are consecutive rows of it, in
         order (the usual tick): one segment, without the run search; None otherwise."""
-        row = self.row[sel]
-        r0 = int(row[0]) if P else 0
-        if P == 0 or int(row[-1]) - r0 != P - 1 or not bool((np.diff(row) == 1).all()):
-            return None
+        if self._whole and P and isinstance(sel, slice) and sel.indices(self._n)[2] == 1:
+            r0 = sel.indices(self._n)[0]  # rows r0, r0 + 1, ...: the table is the block in order
+        else:
+            row = self.row[sel]
+            r0 = int(row[0]) if P else 0
+            if P == 0 or int(row[-1]) - r0 != P - 1 or not bool((np.diff(row) == 1).all()):
+                return None
         blk = self.blocks[0]
         N = blk.n_points
         r = slice(r0, r0 + P)
