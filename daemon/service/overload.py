@@ -217,8 +217,13 @@ class KernelAdmission:
         if not self.enabled:
             return
         f: float | None = None
-        if shedder.limiting and self.slack * shedder.admitted < 1.0:
-            f = max(0.01, self.slack * shedder.admitted)
+        if shedder.limiting and shedder.rate_in > 0:
+            # What was admitted (less than the rate in force when late ticks met the bucket's
+            # cap); while the filter is what limits, that is the filter's own fraction, which
+            # thus grows by ``slack`` a step. Never far below the rate in force: a step that
+            # admitted next to nothing must not close the filter.
+            f = self.slack * max(shedder.admitted, 0.5 * shedder.limit / shedder.rate_in)
+            f = None if f >= 1.0 else f
         old = self.fraction
         if (f is None and old is None) or (
             f is not None and old is not None and abs(f - old) <= self.change * old
