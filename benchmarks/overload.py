@@ -131,7 +131,13 @@ def _sensor_epochs(st: dict[str, Any]) -> tuple[int, bool]:
 
 @contextlib.contextmanager
 def _cell(
-    tmp: Path, rate: float, points: int, quota: CpuQuota | None, shed: bool, late: bool
+    tmp: Path,
+    rate: float,
+    points: int,
+    quota: CpuQuota | None,
+    shed: bool,
+    late: bool,
+    lag_s: float = 0.1,
 ) -> Iterator[CellRun]:
     cell_cpus = {os.cpu_count() - 1} if (os.cpu_count() or 1) > 1 else None  # type: ignore[operator]
     saved = os.sched_getaffinity(0)
@@ -148,7 +154,7 @@ def _cell(
             rate,
             points,
             None,
-            pipeline={"shed_overload": shed},
+            pipeline={"shed_overload": shed, "overload_lag_s": lag_s},
             sim_sensor=LATE_SENDER if late else None,
             on_daemon=place,
         ) as run:
@@ -269,7 +275,7 @@ def _phase(
     """One cell and daemon with the worker under ``cores`` of quota: the window's figures (and
     the recovery once the quota is lifted, when shedding)."""
     tmp.mkdir()
-    with _cell(tmp, args.rate, args.points, quota, shed, late) as run:
+    with _cell(tmp, args.rate, args.points, quota, shed, late, args.lag) as run:
         quota.set(cores)
         time.sleep(4.0)  # the shedder finds the rate; buffers settle
         r = _window(run, args.window)
@@ -291,6 +297,12 @@ def main(argv: list[str] | None = None) -> int:
         default="reference",
         help="the cost per profile the capacity is sized with: keeping up at the rate "
         "(reference, default) or behind, in big batches (about half: a harder overload)",
+    )
+    ap.add_argument(
+        "--lag",
+        type=float,
+        default=0.1,
+        help="[pipeline] overload_lag_s, s: the lag bound (ticks while shedding: half of it)",
     )
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)

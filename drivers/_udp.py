@@ -204,9 +204,7 @@ class UdpProfileSensor(SensorCore):
         self._last_rx_ns: int | None = None
         self.kernel_stamps = False
         """Receipt stamps come from the kernel (``SO_TIMESTAMPNS``), not the reading thread."""
-        self.admission: float | None = None
-        """The fraction of profile frames the kernel lets through (None: all), see
-        :meth:`set_admission`."""
+        self.admission = None
 
     # --- life cycle -------------------------------------------------------------------------
     @property
@@ -367,8 +365,10 @@ class UdpProfileSensor(SensorCore):
         filtered: under overload their losses are overload's)."""
         sock = self._sock
         want = None if fraction is None or fraction >= 1.0 else max(float(fraction), 1e-6)
-        if sock is None or not _bpf.available():
+        if not _bpf.available():
             return False
+        if sock is None:  # closed or reopening: a new socket starts without a filter
+            return want is None or self._admission_program(want) is not None
         if want is None:
             if self.admission is not None:
                 _bpf.detach(sock)

@@ -325,6 +325,9 @@ class ProfileSensor(Device[Profile]):
     """A laser profile sensor."""
 
     kind = "sensor"
+    admission: float | None = None
+    """The fraction of profile frames let through before reading (None: all), see
+    :meth:`set_admission`."""
 
     def __init__(self, sensor_id: int = 0) -> None:
         super().__init__()

@@ -191,9 +191,10 @@ def take_rows(blocks: list[ProfileBlock], rows: NDArray[np.intp]) -> list[Profil
 
 class KernelAdmission:
     """Steers a sensor's shedding before reading from what a :class:`Shedder` admits: the
-    sensor lets ``slack`` times the fraction admitted over the last step through (the token
-    bucket sheds the remainder after reading; a higher rate is followed by ``slack`` a step),
-    everything once the shedder stops."""
+    sensor lets ``slack`` times the larger of the fraction admitted over the last step and half
+    the rate in force over the arrivals through (the token bucket sheds the remainder after
+    reading), everything once the shedder stops. A driver that cannot shed before reading is
+    not asked again."""
 
     slack = 1.1
     change = 0.02
@@ -202,14 +203,19 @@ class KernelAdmission:
     def __init__(self, sensor: ProfileSensor, enabled: bool) -> None:
         self.sensor = sensor
         self.enabled = enabled
-        self.fraction: float | None = None
-        """The fraction in force (None: everything passes)."""
         self._seen = sensor.counters.shed
+
+    @property
+    def fraction(self) -> float | None:
+        """The fraction in force (None: everything passes); the sensor's own (a reopened
+        socket has no filter)."""
+        return self.sensor.admission
 
     def shed_since(self) -> int:
         """Profiles the sensor shed before reading since the last call."""
-        n = self.sensor.counters.shed - self._seen
-        self._seen += n
+        now = self.sensor.counters.shed
+        n = now - self._seen if now >= self._seen else now  # counters restarted
+        self._seen = now
         return n
 
     def steer(self, shedder: Shedder) -> None:
@@ -229,8 +235,6 @@ class KernelAdmission:
             f is not None and old is not None and abs(f - old) <= self.change * old
         ):
             return
-        if self.sensor.set_admission(f):
-            self.fraction = f
-        elif f is not None:
+        if not self.sensor.set_admission(f) and f is not None:
             self.enabled = False
             log.info("%s cannot shed before reading: shedding after reading", self.sensor.kind)

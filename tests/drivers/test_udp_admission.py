@@ -1,4 +1,5 @@
-"""Kernel-side admission (``set_admission``): a socket filter the kernel runs before queueing.
+"""Kernel-side admission (``set_admission``): a socket filter the kernel runs before queueing
+(the daemon's steering of it: tests/daemon/service/test_overload.py).
 
 Real loopback UDP, frames from the real LPF1 encoder: with a fraction set, exactly the frames the
 filter's rule keeps reach the driver (fragments of a frame share its fate, control messages

@@ -1,11 +1,12 @@
 """Admission under overload (daemon/service/overload.py): a worker simulated tick by tick with
-known costs, so the capacity is known exactly and what the shedder admits can be checked; then
-the real pipeline (the LPF1-over-UDP driver on loopback, the pairer, a controller stand-in
-sending states every 2 ms) with a publish call made slow enough that twice its capacity fits
-in a test."""
+known costs, so the capacity is known exactly and what the shedder admits can be checked; the
+steering of a real UDP driver's socket filter (shedding before reading); then the real pipeline
+(the LPF1-over-UDP driver on loopback, the pairer, a controller stand-in sending states every
+2 ms) with a publish call made slow enough that twice its capacity fits in a test."""
 
 from __future__ import annotations
 
+import math
 import multiprocessing
 import socket
 import time
@@ -16,12 +17,13 @@ import pytest
 from support import StandInRobot
 
 from wristscan.daemon.cloud import wsc1
-from wristscan.daemon.service.overload import Shedder, spread_rows, take_rows
+from wristscan.daemon.service.overload import KernelAdmission, Shedder, spread_rows, take_rows
 from wristscan.daemon.service.pipeline import AlignmentSetup, Pipeline
 from wristscan.daemon.sync.pairing import Pairer, PairerConfig
 from wristscan.drivers import lpf1
 from wristscan.drivers.records import ProfileBlock, RobotState
 from wristscan.drivers.sensor_lpf1 import Lpf1UdpSensor
+from wristscan.drivers.sensor_rf627 import Rf627Sensor
 
 C_READ_NS = 3_000
 C_KEEP_NS = 20_000
@@ -128,6 +130,33 @@ def test_take_rows_selects_across_blocks() -> None:
 def test_bad_settings_are_refused() -> None:
     with pytest.raises(ValueError, match="headroom"):
         Shedder(headroom=1.5)
+
+
+def test_kernel_admission_follows_the_shedder_and_a_reopened_socket() -> None:
+    """``KernelAdmission``: the fraction from the shedder's state, none once it stops; a driver
+    without a filter is not asked again."""
+    shedder = Shedder()
+    shedder.limit, shedder.rate_in, shedder.admitted = 2000.0, 5000.0, 0.3
+    with Lpf1UdpSensor(sensor_id=7, bind_host="127.0.0.1", port=0) as drv:
+        k = KernelAdmission(drv, enabled=True)
+        k.steer(shedder)  # 1.1 x max(0.3, 0.5 x 2000 / 5000)
+        assert k.fraction == pytest.approx(0.33) and drv.admission == k.fraction
+        shedder.admitted = 0.05  # next to nothing admitted: held at half the rate in force
+        k.steer(shedder)
+        assert k.fraction == pytest.approx(0.22)
+        drv.close()
+        drv.open()
+        assert drv.admission is None and drv.health().detail["admission"] is None
+        k.steer(shedder)  # set again on the new socket
+        assert drv.admission == pytest.approx(0.22)
+        shedder.limit = math.inf
+        k.steer(shedder)
+        assert drv.admission is None and k.enabled
+    with Rf627Sensor(bind_host="127.0.0.1", port=0) as rf:
+        k = KernelAdmission(rf, enabled=True)
+        shedder.limit = 2000.0
+        k.steer(shedder)
+        assert not k.enabled and k.fraction is None
 
 
 # --- the real pipeline under overload ---------------------------------------------------------
