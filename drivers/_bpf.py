@@ -64,19 +64,28 @@ def kept(counters: list[int], fraction: float) -> list[bool]:
 
 
 def counter_filter(
-    fraction: float, counter_offset: int, min_length: int, type_offset: int, profile_type: int
+    fraction: float,
+    counter_offset: int,
+    min_length: int,
+    type_offset: int | None = None,
+    profile_type: int = 0,
 ) -> list[Instruction]:
     """The program keeping ``fraction`` of the profile frames by their counter (a little-endian
     integer at ``counter_offset`` of the payload, its low 32 bits used). Datagrams shorter than
-    ``min_length`` payload bytes, or whose byte at ``type_offset`` is not ``profile_type``,
-    pass."""
+    ``min_length`` payload bytes, or whose byte at ``type_offset`` is not ``profile_type``
+    (when given: other messages share the stream), pass."""
     f = _threshold(fraction)
     c = UDP_HEADER + counter_offset
+    typed: list[Instruction] = []
+    if type_offset is not None:
+        typed = [
+            (_LDB_ABS, 0, 0, UDP_HEADER + type_offset),
+            (_JEQ_K, 0, 0, profile_type),  # jf -> accept, patched below
+        ]
     body: list[Instruction] = [
         (_LD_LEN, 0, 0, 0),
         (_JGE_K, 0, 0, UDP_HEADER + min_length),  # jf -> accept, patched below
-        (_LDB_ABS, 0, 0, UDP_HEADER + type_offset),
-        (_JEQ_K, 0, 0, profile_type),  # jf -> accept
+        *typed,
         # cBPF loads are big-endian: the counter's bytes are put together from its top byte.
         (_LDB_ABS, 0, 0, c + 3),
         (_LSH_K, 0, 0, 8),
@@ -97,7 +106,7 @@ def counter_filter(
         (_RET_K, 0, 0, _ACCEPT),
     ]
     accept = len(body) - 1
-    for i in (1, 3):  # their "false" branch goes to accept
+    for i in (1, 3) if typed else (1,):  # their "false" branch goes to accept
         code, jt, _, k = body[i]
         body[i] = (code, jt, accept - i - 1, k)
     return body

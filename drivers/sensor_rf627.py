@@ -30,7 +30,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
-from wristscan.drivers import rf627, rf627_block
+from wristscan.drivers import _bpf, rf627, rf627_block
 from wristscan.drivers._udp import Datagrams, UdpProfileSensor
 from wristscan.drivers.records import Profile, ProfileBlock
 
@@ -80,6 +80,10 @@ class Rf627Sensor(UdpProfileSensor):
         self._signature = self._candidate_sig = None
         self._ref = self._held = None
         self._forget_period()
+
+    def _admission_program(self, fraction: float) -> list[_bpf.Instruction]:
+        # Every datagram is a profile; measure_count at bytes 24-27 of the 64-byte header.
+        return _bpf.counter_filter(fraction, 24, rf627.HEADER.size)
 
     def _forget_period(self) -> None:
         self._steps.clear()

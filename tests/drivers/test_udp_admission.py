@@ -15,9 +15,10 @@ import time
 import numpy as np
 import pytest
 
-from wristscan.drivers import _bpf, lpf1
+from wristscan.drivers import _bpf, lpf1, rf627
 from wristscan.drivers.records import ProfileBlock
 from wristscan.drivers.sensor_lpf1 import Lpf1UdpSensor
+from wristscan.drivers.sensor_rf627 import Rf627Sensor
 
 pytestmark = pytest.mark.skipif(not _bpf.available(), reason="socket filters are Linux's")
 
@@ -37,7 +38,7 @@ def _frames(enc: lpf1.ProfileEncoder, counters: np.ndarray, n: int = 64) -> list
     return enc.encode(counters, counters * 1000, z, np.ones(z.shape, bool))
 
 
-def _send_read(drv: Lpf1UdpSensor, grams: list[bytes]) -> list[int]:
+def _send_read(drv: Lpf1UdpSensor | Rf627Sensor, grams: list[bytes]) -> list[int]:
     assert drv.local_address is not None
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
         for g in grams:
@@ -79,3 +80,20 @@ def test_lpf1_frames_shed_in_the_kernel_and_counted() -> None:
         assert got == list(range(400, 420)) + list(range(425, 430))
         c = drv.health().counters
         assert (c.shed, c.lost) == (360 - 108, 5)  # the tail shed, 420-424 lost
+
+
+def test_rf627_frames_shed_in_the_kernel_by_measure_count() -> None:
+    """RF627: every datagram is a profile; its ``measure_count`` decides (wrapping at 2**32)."""
+    enc = rf627.RF627Encoder(serial=42)
+    counts = np.arange((1 << 32) - 100, (1 << 32) + 200) % (1 << 32)
+    times = 5_000_000_000 + np.arange(counts.size) * 1_000_000
+    z = np.full((counts.size, 40), 0.05)
+    grams = enc.encode(counts, times, np.linspace(-0.02, 0.02, 40), z, np.ones(z.shape, bool))
+    with Rf627Sensor(sensor_id=42, bind_host="127.0.0.1", port=0) as drv:
+        assert drv.set_admission(0.4)
+        got = _send_read(drv, grams)
+        sent = [int(c) for c in counts]
+        want = [c for c, k in zip(sent, _bpf.kept(sent, 0.4), strict=True) if k]
+        assert got == want and len(want) == 120
+        c = drv.health().counters
+        assert (c.lost, c.malformed) == (0, 0) and c.shed == sent.index(want[-1]) + 1 - 120

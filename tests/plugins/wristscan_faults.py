@@ -30,9 +30,12 @@ The faults and their seams (see docs/mutations.md):
 * ``encoder``: the table calibration's ``encoder_offset_rad`` in force off by 0.05 deg (same seam).
 * ``nearest``: the robot state taken at the nearest sample instead of interpolated. Seam:
   ``RobotStateBuffer.__init__`` in ``wristscan.daemon.sync.buffers`` gives each robot buffer a
-  ``locate`` and a ``_locate`` (what its interpolation calls) whose fraction is rounded to 0 or 1.
+  ``locate`` and a ``_locate`` (what its interpolation calls) whose fraction is rounded to 0 or 1;
+  the usual tick's compiled location (``wristscan.daemon.sync.readytick._mapped_compiled``)
+  declines, so that tick goes through them too.
 * ``drift``: the sensor clock's drift ignored (the mapping's slope forced to 1, the offset still
-  fitted). Seam: ``wristscan.daemon.sync.envelope.support_slope`` answers 0 while a sensor clock's
+  fitted). Seam: ``wristscan.daemon.sync.envelope.support_slope`` answers 0, and the fit's
+  compiled slope searches (``envelope._searches``) answer as it would, while a sensor clock's
   ``ClockMapper._refit`` runs (``wristscan.daemon.sync.clockmap``); robot and table clocks are
   left alone.
 * ``kinematics``: the robot's nominal kinematics instead of its calibrated model (today the
@@ -207,6 +210,13 @@ def _patch_nearest(mod: Any, size: float) -> None:
     cls.__init__ = init
 
 
+def _patch_compiled_locate(mod: Any, size: float) -> None:
+    """The usual tick's compiled mapping and location (issue 21, ``readytick``) declines, so the
+    tick takes the numpy steps, whose location the buffer's patched ``_locate`` gives."""
+    del size
+    mod._mapped_compiled = lambda *args, **kwargs: None
+
+
 def _patch_robot_model(mod: Any, size: float) -> None:
     del size
     original = mod.robot_model
@@ -236,6 +246,18 @@ def _patch_support_slope(mod: Any, size: float) -> None:
         return float(original(*args, **kwargs))
 
     mod.support_slope = support_slope
+    original_searches = mod._searches
+
+    def searches(X: Any, R: Any, *args: Any, **kwargs: Any) -> Any:
+        # The fit's five slope searches in one compiled call (issue 21) bypass
+        # support_slope: the same answers as five zeros from it.
+        if getattr(_zero_slope, "on", False):
+            _note_use("sensor clock slope forced to 1")
+            v1, v2 = float(R[0::2].min()), float(R[1::2].min())
+            return 0.0, 0.0, 0.0, v1, v2, (0.0, 0.0)
+        return original_searches(X, R, *args, **kwargs)
+
+    mod._searches = searches
 
 
 def _patch_sensor_refit(mod: Any, size: float) -> None:
@@ -288,7 +310,10 @@ FAULTS: dict[str, Fault] = {
             "robot state taken at the nearest sample instead of interpolated",
             0.0,
             "",
-            {"wristscan.daemon.sync.buffers": _patch_nearest},
+            {
+                "wristscan.daemon.sync.buffers": _patch_nearest,
+                "wristscan.daemon.sync.readytick": _patch_compiled_locate,
+            },
         ),
         Fault(
             "drift",

@@ -22,8 +22,7 @@ from wristscan.daemon.service.pipeline import AlignmentSetup, Pipeline
 from wristscan.daemon.sync.pairing import Pairer, PairerConfig
 from wristscan.drivers import lpf1
 from wristscan.drivers.records import ProfileBlock, RobotState
-from wristscan.drivers.sensor_lpf1 import Lpf1UdpSensor
-from wristscan.drivers.sensor_rf627 import Rf627Sensor
+from wristscan.drivers.sensor_lpf1 import Lpf1TcpSensor, Lpf1UdpSensor
 
 C_READ_NS = 3_000
 C_KEEP_NS = 20_000
@@ -152,11 +151,11 @@ def test_kernel_admission_follows_the_shedder_and_a_reopened_socket() -> None:
         shedder.limit = math.inf
         k.steer(shedder)
         assert drv.admission is None and k.enabled
-    with Rf627Sensor(bind_host="127.0.0.1", port=0) as rf:
-        k = KernelAdmission(rf, enabled=True)
-        shedder.limit = 2000.0
-        k.steer(shedder)
-        assert not k.enabled and k.fraction is None
+    tcp = Lpf1TcpSensor("127.0.0.1", 9)  # a stream: no filter (never opened)
+    k = KernelAdmission(tcp, enabled=True)
+    shedder.limit = 2000.0
+    k.steer(shedder)
+    assert not k.enabled and k.fraction is None
 
 
 # --- the real pipeline under overload ---------------------------------------------------------
