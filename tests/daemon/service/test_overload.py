@@ -254,9 +254,12 @@ def test_the_pipeline_sheds_under_overload_and_recovers() -> None:
     # (A batch counts whole when its put returns: up to ~0.2 s of profiles across an edge.)
     assert 0.5 * 2000 <= rate <= 1.2 * 2000, rate
     assert st["dropped"].get("overload", 0) > 1000, st["dropped"]
-    # Most of it shed before reading, by the UDP socket's filter (counted from the gaps), the
-    # filter removed once the rate dropped.
-    assert st["sensor"]["shed"] > 500 and st["overload"]["kernel_fraction"] is None, st["sensor"]
+    # Part of it shed before reading, by the UDP socket's filter (counted from the gaps: how
+    # much depends on how long the publisher's backlog lasts), counted as overload; the filter
+    # removed once the rate dropped.
+    kernel = st["sensor"]["shed"]
+    assert 0 < kernel <= st["dropped"]["overload"], (st["sensor"], st["dropped"])
+    assert st["overload"]["kernel_fraction"] is None, st["overload"]
     # Counters add up; the clock never restarted, and it is locked at the end.
     assert st["received"] == st["published"] + sum(st["dropped"].values()) + st["pending"]
     clocks = st["pairing"]["sensor_clocks"]
