@@ -91,7 +91,6 @@ class CpuQuota:
         (self.path / "cpu.cfs_quota_us").write_text("-1")  # the period may not go below a quota
         (self.path / "cpu.cfs_period_us").write_text(str(period))
         (self.path / "cpu.cfs_quota_us").write_text(str(max(MIN_QUOTA_US, int(cores * period))))
-        self.cores = cores
 
     def close(self) -> None:
         for tid in (self.path / "tasks").read_text().split():

@@ -10,8 +10,8 @@ The filter keeps frame ``c`` when ``(c * F) mod 2**32 < F``, with ``F = fraction
 Beatty sequence, i.e. exactly ``fraction`` of the frames, evenly spread (one kept every
 ``1 / fraction`` frames, never two in a row below one half), decided by the frame counter the
 datagram carries, so every fragment of a frame shares its fate and the gaps are counted from
-the counters as usual. Datagrams too short to hold the counter, and messages other than
-profiles (hello, heartbeats, status), always pass.
+the counters as usual. Datagrams shorter than a header always pass, and so do messages other
+than profiles (hello, heartbeats, status) in a stream that has them.
 
 :func:`counter_filter` builds the program for a counter at a byte offset of the UDP payload
 (little-endian, its low 32 bits), :func:`attach` / :func:`detach` set it on a socket
@@ -57,8 +57,8 @@ def _threshold(fraction: float) -> int:
 
 
 def kept(counters: list[int], fraction: float) -> list[bool]:
-    """Which frame counters the filter of ``fraction`` keeps (the kernel's rule, for tests and
-    for counting)."""
+    """Which frame counters the filter of ``fraction`` keeps: the kernel's rule in Python (what
+    the tests check the kernel against)."""
     f = _threshold(fraction)
     return [((c & 0xFFFFFFFF) * f) & 0xFFFFFFFF < f for c in counters]
 

@@ -82,18 +82,11 @@ def feed_block(cm: ClockMapper, xs: IntArray, ys: IntArray) -> IntArray:
 def feed_lists(cm: ClockMapper, xs: list[int], ys: list[int]) -> None:
     """:func:`feed_block` for arrivals given as lists of ints (a tick's robot states), without
     the epochs: a few arrivals take the scalar path with no array made (the same steps)."""
+    if jit.kernel("feed_segment") is not None:  # compiled: no Python steps per arrival
+        feed_block(cm, np.array(xs, dtype=np.int64), np.array(ys, dtype=np.int64))
+        return
     n = len(xs)
     i = 0
-    kern = jit.kernel("feed_segment")
-    if kern is not None:  # compiled: no Python steps per arrival, no epochs kept
-        ax, ay = np.array(xs, dtype=np.int64), np.array(ys, dtype=np.int64)
-        while i < n:
-            j = _compiled(cm, kern, ax, ay, i)
-            if j == i:
-                cm.feed(xs[i], ys[i])  # unusual: as feed_block does
-                j += 1
-            i = j
-        return
     while i < n:
         j = _small_segment(cm, xs, ys, i) if n <= _SMALL else -1
         if j < 0:

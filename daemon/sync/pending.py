@@ -331,8 +331,9 @@ class PendingProfiles:
     def _gather_run(self, sel: IntArray | slice, P: int) -> Gathered | None:
         """:meth:`gather` when one block is held and ``sel`` are consecutive rows of it, in
         order (the usual tick): one segment, without the run search; None otherwise."""
-        if self._whole and P and isinstance(sel, slice) and sel.indices(self._n)[2] == 1:
-            r0 = sel.indices(self._n)[0]  # rows r0, r0 + 1, ...: the table is the block in order
+        run = sel.indices(self._n) if self._whole and P and isinstance(sel, slice) else None
+        if run is not None and run[2] == 1:
+            r0 = run[0]  # rows r0, r0 + 1, ...: the table is the block in order
         else:
             row = self.row[sel]
             r0 = int(row[0]) if P else 0
