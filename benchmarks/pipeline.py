@@ -152,6 +152,8 @@ _CPUS = frozenset(os.sched_getaffinity(0))
 _CELL_CPUS = {max(_CPUS)}
 
 _SENSOR = "lpf1"
+_SHM = True
+"""The daemon's ``[zenoh] shared_memory`` (``--shared-memory``): the subscriber is on this host."""
 """The sensor pair (``--sensor``): ``lpf1`` (LPF1 over UDP) or ``gocator`` (the LMI Gocator
 Protocol over TCP, the simulated Gocator on the cell's loopback address)."""
 
@@ -546,6 +548,7 @@ def measure_pipeline(
             # Clouds in the base frame do not use the rotary table: its simulator would only
             # take CPU from the machine.
             "sim.table": {"enabled": False},
+            "zenoh": {"shared_memory": _SHM},
         }
     )
     doc.pop("table", None)
@@ -1099,6 +1102,9 @@ def _run(
         )
     )
     figures.append(
+        Figure("daemon's zenoh shared memory (--shared-memory)", int(_SHM), "", "-", None)
+    )
+    figures.append(
         Figure(
             "nice value of the simulated cell", os.getpriority(os.PRIO_PROCESS, 0), "", "-", None
         )
@@ -1164,8 +1170,17 @@ def main(argv: list[str] | None = None) -> int:
         help="the sensor pair: lpf1 (LPF1 over UDP, default) or gocator (the LMI Gocator "
         "Protocol over TCP and the simulated Gocator)",
     )
+    ap.add_argument(
+        "--shared-memory",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="the daemon's [zenoh] shared_memory (default on: the subscriber is on this host, "
+        "as a consumer on the cell PC is; --no-shared-memory: the batches cross zenoh's TCP "
+        "link, as towards another machine)",
+    )
     ns = ap.parse_args(args)
-    global _SPLIT_CORES, _SENSOR
+    global _SPLIT_CORES, _SENSOR, _SHM
+    _SHM = bool(ns.shared_memory)
     _SPLIT_CORES = bool(ns.split_cores) and len(_CPUS) >= 2
     _SENSOR = ns.sensor
     rates = tuple(float(x) for x in ns.rates.split(","))

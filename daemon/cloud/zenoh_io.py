@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 
 from wristscan.daemon.cloud import wsc1, wsp1
 from wristscan.daemon.cloud.session import ZenohSetupError, open_session, session_config
+from wristscan.daemon.cloud.shm import ShmPayloads
 
 __all__ = ["DaemonZenoh", "ZenohSetupError", "open_session", "session_config"]
 
@@ -42,7 +43,11 @@ class DaemonZenoh:
         congestion: Literal["drop", "block"] = "drop",
         calibration: JsonFn | None = None,
         stats: JsonFn | None = None,
+        shm_pool_bytes: int = 0,
     ) -> None:
+        """``shm_pool_bytes``: a zenoh shared memory pool of that size for the cloud batches
+        (:class:`~wristscan.daemon.cloud.shm.ShmPayloads`; the session must have shared memory
+        on); 0: none. A pool that cannot be made is logged and the batches go as plain bytes."""
         self.session = session
         self.prefix = prefix.rstrip("/")
         cc = zenoh.CongestionControl.DROP if congestion == "drop" else zenoh.CongestionControl.BLOCK
@@ -73,6 +78,12 @@ class DaemonZenoh:
         self.seq = 0
         self.published = 0
         self._closed = False
+        self.shm: ShmPayloads | None = None
+        if shm_pool_bytes > 0:
+            try:
+                self.shm = ShmPayloads(shm_pool_bytes)
+            except RuntimeError as exc:
+                log.warning("%s; cloud batches go as plain bytes", exc)
 
     @staticmethod
     def _answer(key: str, fn: JsonFn) -> Callable[[zenoh.Query], None]:
@@ -126,7 +137,8 @@ class DaemonZenoh:
             n_profiles=n_profiles,
             frame_id=frame_id,
         )
-        self._cloud.put(payload)  # zenoh copies the bytearray once; no copy of ours
+        # zenoh copies a bytearray once; a shared buffer is passed on as it is
+        self._cloud.put(payload if self.shm is None else self.shm.wrap(payload))
         self.seq += 1
         self.published += 1
         return self.seq - 1

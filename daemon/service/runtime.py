@@ -98,10 +98,15 @@ class Service:
         face = DaemonZenoh(
             session, z.prefix, congestion=z.congestion_control,
             calibration=self._calibration_json, stats=self.stats,
+            shm_pool_bytes=z.shm_pool_mb * 2**20 if z.shared_memory else 0,
         )  # fmt: skip
         face.seq = face.published = self._next_seq
         try:
-            ros2 = None if ros2_class is None else ros2_class(session, cfg.ros2, cfg.cell.name)
+            ros2 = (
+                None
+                if ros2_class is None
+                else ros2_class(session, cfg.ros2, cfg.cell.name, face.shm)
+            )
         except BaseException:
             face.close()
             raise
@@ -158,6 +163,9 @@ class Service:
             state=self._state(), reloads=self.reloads, reload_failures=self.reload_failures,
             outages=self._outage_summary(),
         )  # fmt: skip
+        shm = None if self.zenoh is None else self.zenoh.shm
+        if shm is not None:
+            st["shared_memory"] = shm.counters()
         return st
 
     def _state(self) -> str:
