@@ -3,7 +3,9 @@
 Threads:
 
 * one reader per device (sensor, robot, table) that blocks on the driver's ``read`` and puts
-  records into a bounded queue (a full queue drops the record and counts it by reason);
+  records into a bounded queue (a full queue drops the record and counts it by reason), except
+  for devices whose records are stamped on receipt (the UDP sensors, the UR robot), which the
+  worker reads itself at each tick;
 * one worker that, every ``batch_s``, drains the queues into the :class:`Pairer`, aligns the
   paired batches with the calibration in force (vectorised, Eq. 1) and publishes WSC1 batches.
 
@@ -31,7 +33,7 @@ from wristscan.daemon.cloud import wsc1
 from wristscan.daemon.service.instruments import STEPS, LatencyWindow, StepCpu
 from wristscan.daemon.service.overload import KernelAdmission, Shedder, spread_rows, take_rows
 from wristscan.daemon.service.publisher import Outgoing, Publisher
-from wristscan.daemon.service.readers import Reader, name_os_thread
+from wristscan.daemon.service.readers import InlineReader, Reader, name_os_thread
 from wristscan.daemon.service.settings import AlignmentSetup, PipelineSettings
 from wristscan.daemon.sync.batch import PairedBatch
 from wristscan.daemon.sync.pairing import Pairer
@@ -114,6 +116,12 @@ class Pipeline:
         self._kernel = KernelAdmission(sensor, s.shed_overload and self.inline_sensor)
         self.read_errors: Counter[str] = Counter()
         """Driver errors met while reading inline, by device (the drivers reconnect)."""
+        robot_inline = robot.stamped_on_receipt if s.inline_robot is None else s.inline_robot
+        self.inline_robot = (
+            InlineReader("robot", robot, self._robot_q, s.state_queue, self._drop_state)
+            if robot_inline
+            else None
+        )
         self._readers = self._make_readers()
         self._worker = threading.Thread(target=self._work, name="pipeline-worker", daemon=True)
         self._started = False
@@ -149,7 +157,9 @@ class Pipeline:
                     self._fail,
                 )
             )
-        states: list[tuple[str, Device[Any], deque[Any]]] = [("robot", self.robot, self._robot_q)]
+        states: list[tuple[str, Device[Any], deque[Any]]] = []
+        if self.inline_robot is None:
+            states.append(("robot", self.robot, self._robot_q))
         if self.table is not None:
             states.append(("table", self.table, self._table_q))
         for name, device, sink in states:
@@ -384,6 +394,9 @@ class Pipeline:
         # Only what is there now: later arrivals wait for the next tick.
         self._states_arrived.clear()
         robot, table = self._robot_q, self._table_q
+        if self.inline_robot is not None:
+            with self._cpu["read"]:
+                self.inline_robot.pump()
         with self._cpu["pair"]:
             if robot:
                 pairer.add_robot_states([robot.popleft() for _ in range(len(robot))])
@@ -391,6 +404,14 @@ class Pipeline:
                 pairer.add_table_state(table.popleft())
             if profiles_too:
                 self._admit()
+
+    def _states_wait(self, timeout_s: float) -> bool:
+        """Wait up to ``timeout_s`` for new states: from the robot read inline, else from the
+        reader threads; True when some arrived."""
+        if self.inline_robot is None:
+            return self._states_arrived.wait(timeout_s)
+        with self._cpu["read"]:
+            return self.inline_robot.pump(timeout_s) > 0 or self._states_arrived.is_set()
 
     def _poll(self) -> list[PairedBatch]:
         with self._cpu["pair"]:
@@ -407,7 +428,7 @@ class Pipeline:
         unpolled = False
         while self.pairer.waiting_for_states and not stopping:
             remaining = deadline - time.monotonic()
-            if remaining <= 0 or not self._states_arrived.wait(remaining):
+            if remaining <= 0 or not self._states_wait(remaining):
                 break
             self._drain(profiles_too=False)
             # Poll once the states reach every waiting profile, not at each state (a poll

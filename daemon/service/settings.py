@@ -41,7 +41,7 @@ class PipelineSettings:
     """Between ticks the worker reads, decodes and queues what has arrived every this long
     (0: only at ticks), so that a tick has only the newest profiles left to decode (the same
     CPU per profile, off the path from tick to publication)."""
-    read_ahead_profiles: int = 32
+    read_ahead_profiles: int = 100
     """...but a read-ahead pass waits until about this many profiles have arrived (at the
     arrival rate of the last ticks): a pass costs ~0.1 ms however few it decodes, so at 1 kHz
     five passes a tick cost more than the profiles; at 10 kHz a pass every ~3 ms."""
@@ -52,6 +52,10 @@ class PipelineSettings:
     driver's records are ``stamped_on_receipt``, e.g. by the kernel; then reading late loses no
     timing, the socket buffer holds the tick's datagrams, and a thread woken per profile,
     competing for the GIL with the worker, is saved)."""
+    inline_robot: bool | None = None
+    """Read the robot in the worker at each tick (and while it waits for states) instead of in
+    a reader thread (None: when its records are ``stamped_on_receipt``, e.g. by the UR driver's
+    receive child; a thread woken for each of 500 states a second costs ~4 % of a core)."""
     shed_overload: bool = True
     """Shed whole profiles, evenly spread and counted (``overload``), when they arrive faster
     than the worker can process them (``daemon/service/overload.py``), instead of falling
