@@ -209,7 +209,7 @@ class URStateStream(Robot):
     def _on_receive_drop(self) -> None:
         """The receive link dropped (the child reconnects); a layer above may react."""
 
-    def _on_rows(self, data: memoryview) -> None:
+    def _on_rows(self, data: memoryview | bytes) -> None:
         rows = np.frombuffer(data, dtype=ROW_DTYPE)
         # Columns once per chunk: indexing a structured row field by field costs more than the
         # rest of the record's handling.
@@ -272,7 +272,9 @@ class URStateStream(Robot):
         self._lost_if_e_series += _missing(dt, E_SERIES_PERIOD_S)
         self.counters.lost += _missing(dt, _CB3_PERIOD_S)
 
-    def _handle_rx_message(self, rx: _Rx, msg: bytes) -> None:
+    def _handle_rx_message(self, rx: _Rx, msg: bytes, rows: list[memoryview]) -> None:
+        """One message of the child; its rows are appended to ``rows`` (turned into records
+        by the caller, all of a pump at once: per call, not per row, costs most there)."""
         rx.last_msg = time.monotonic()
         self.counters.bytes += len(msg)
         tag, body = msg[:1], memoryview(msg)[1:]
@@ -281,8 +283,11 @@ class URStateStream(Robot):
                 self.counters.malformed += 1
                 self.raw_log.add(msg)
                 return
-            self._on_rows(body)
+            rows.append(body)
             return
+        if rows:  # what came before a state change is taken first, in order
+            self._on_rows(b"".join(rows))
+            rows.clear()
         if tag != TAG_OBJ:
             self.counters.malformed += 1
             self.raw_log.add(msg)
@@ -312,10 +317,15 @@ class URStateStream(Robot):
                 return
             try:
                 if rx.readable(timeout):
-                    for _ in range(4096):
-                        self._handle_rx_message(rx, rx.conn.recv_bytes())
-                        if not rx.readable(0.0):
-                            break
+                    rows: list[memoryview] = []
+                    try:
+                        for _ in range(4096):
+                            self._handle_rx_message(rx, rx.conn.recv_bytes(), rows)
+                            if not rx.readable(0.0):
+                                break
+                    finally:
+                        if rows:
+                            self._on_rows(rows[0] if len(rows) == 1 else b"".join(rows))
             except (EOFError, OSError):
                 if supervise or rx.state not in ("down", "failed"):
                     self._rx_died("ended")
