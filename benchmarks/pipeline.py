@@ -42,7 +42,9 @@ Python UDP receiver at each rate.
 
 As root, the daemon (and the subscriber) run at the ``Nice=`` of ``systemd/wristscan.service``,
 as the unit runs it. ``--load N`` adds N busy processes of default priority, each a session of
-its own, on the daemon's CPUs: other work on the cell PC.
+its own, on the daemon's CPUs: other work on the cell PC. The daemon's ``[zenoh]
+shared_memory`` is on unless ``--no-shared-memory`` (its subscriber is on this host, as a
+consumer on the cell PC is; off, the batches cross zenoh's TCP link as towards another machine).
 
 Run: ``.venv/bin/python benchmarks/pipeline.py [--duration 20] [--rates 1000,5000]
 [--json out.json] [--workdir DIR] [--profile PREFIX] [--load N] [--sensor lpf1|gocator]``
