@@ -116,12 +116,7 @@ class Pipeline:
         self._kernel = KernelAdmission(sensor, s.shed_overload and self.inline_sensor)
         self.read_errors: Counter[str] = Counter()
         """Driver errors met while reading inline, by device (the drivers reconnect)."""
-        robot_inline = robot.stamped_on_receipt if s.inline_robot is None else s.inline_robot
-        self.inline_robot = (
-            InlineReader("robot", robot, self._robot_q, s.state_queue, self._drop_state)
-            if robot_inline
-            else None
-        )
+        self.inline_robot: InlineReader[RobotState] | None = None
         self._readers = self._make_readers()
         self._worker = threading.Thread(target=self._work, name="pipeline-worker", daemon=True)
         self._started = False
@@ -142,10 +137,16 @@ class Pipeline:
         self._tick_ns = 0
 
     def _make_readers(self) -> list[Reader[Any]]:
-        """A reader thread per device: the robot, the table if any, and the sensor unless it is
-        read inline by the worker. State readers wake the worker's wait for states."""
+        """A reader thread per device: the robot and the sensor unless the worker reads them
+        itself (``inline_robot`` made here), the table if any. State readers wake the worker's
+        wait for states."""
         s = self.settings
         readers: list[Reader[Any]] = []
+        inline = self.robot.stamped_on_receipt if s.inline_robot is None else s.inline_robot
+        if inline:
+            self.inline_robot = InlineReader(
+                "robot", self.robot, self._robot_q, s.state_queue, self._drop_state
+            )
         if not self.inline_sensor:
             readers.append(
                 Reader(
