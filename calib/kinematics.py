@@ -43,7 +43,6 @@ import math
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from wristscan.calib import kinematics_small, se3
@@ -259,6 +258,8 @@ def _ideal_approximation(model: DHParams) -> DHParams:
         nd, na, _, _ = nominal.arrays()
         starts.append(np.concatenate([[nd[0], na[1], na[2], nd[3], nd[4], nd[5]], np.zeros(6)]))
     best = min(starts, key=lambda p: float(np.sum(residual(p) ** 2)))
+    from scipy.optimize import least_squares  # here: 0.4 s at every process start otherwise
+
     fit = least_squares(residual, best, method="lm", xtol=1e-12, ftol=1e-12)
     rms = float(np.sqrt(np.mean(fit.fun**2)))
     if rms > 0.05:
@@ -423,6 +424,8 @@ def _refine(model: DHParams, T: FloatArray, q0: FloatArray) -> FloatArray:
         _, phi = pose_error(q)
         J[3:, :] = _inv_left_jacobian_so3(phi) @ J[3:, :]
         return J
+
+    from scipy.optimize import least_squares  # as in _ideal_approximation
 
     # Seeds are close (or belong to a branch that does not exist): cap the work on hopeless ones.
     res = least_squares(

@@ -492,11 +492,30 @@ def late_sender_arrivals(
 
 
 def wait_for(cond: Any, what: str, timeout: float = 30.0) -> None:
-    """Poll ``cond()`` every 50 ms until it is true; fail with ``what`` after ``timeout`` s."""
+    """Poll ``cond()`` every 10 ms until it is true; fail with ``what`` after ``timeout`` s."""
     deadline = time.monotonic() + timeout
     while not cond():
         assert time.monotonic() < deadline, what
-        time.sleep(0.05)
+        time.sleep(0.01)
+
+
+def publish_until(
+    publish: Callable[[], object],
+    arrived: Callable[[], bool],
+    what: str,
+    every_s: float = 0.2,
+    timeout: float = 30.0,
+) -> None:
+    """``publish()`` every ``every_s`` until ``arrived()`` (polled every 10 ms: returns as soon
+    as it is true); fail with ``what`` after ``timeout`` s. For a subscriber that may match the
+    publisher only after its first samples went by."""
+    deadline = time.monotonic() + timeout
+    while not arrived():
+        assert time.monotonic() < deadline, what
+        publish()
+        until = min(time.monotonic() + every_s, deadline)
+        while not arrived() and time.monotonic() < until:
+            time.sleep(0.01)
 
 
 class StandInRobot(Robot):

@@ -8,6 +8,7 @@ import re
 import socket
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -334,16 +335,23 @@ def _free_udp_port() -> int:
         return int(s.getsockname()[1])
 
 
-def _sim_config(tmp_path: Path, *, motion: bool = True, calib_file: str | None = None) -> Path:
-    """config/sim.toml on a free controller address and UDP port, without the rotary table,
-    with light profiles (512 points) so that the loaded test host keeps up, and ``[sensor]
+def _sim_config(
+    tmp_path: Path,
+    *,
+    motion: bool = True,
+    calib_file: str | None = None,
+    endpoint: tuple[str, int] | None = None,
+) -> Path:
+    """config/sim.toml on a free controller address and UDP port (or on ``endpoint``'s, the
+    controller's host and the sensor's port of a running cell), without the rotary table, with
+    light profiles (512 points) so that the loaded test host keeps up, and ``[sensor]
     latency_s`` 1 ms short of the simulator's."""
     from wristscan.drivers.sim.ur.controller import pick_free_loopback_host
 
     text = (ROOT / "config" / "sim.toml").read_text()
-    host = pick_free_loopback_host()
+    host, port = endpoint or (pick_free_loopback_host(), _free_udp_port())
     text = text.replace('host = "127.0.0.2"', f'host = "{host}"')
-    text = text.replace("port = 50002", f"port = {_free_udp_port()}")
+    text = text.replace("port = 50002", f"port = {port}")
     text = re.sub(r"\n\[table\]\n.*?\n(?=\[)", "\n", text, flags=re.S)
     text = text.replace("[sim.table]\nenabled = true", "[sim.table]\nenabled = false")
     text = text.replace("n_points = 2048", "n_points = 512")
@@ -370,22 +378,44 @@ def _cli(args: list[str]) -> Any:
     return CliRunner().invoke(app, args, catch_exceptions=False)
 
 
-@pytest.fixture
-def sim_cell(tmp_path: Path) -> Any:
+@pytest.fixture(scope="module")
+def shared_cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Any, tuple[str, int]]]:
+    """One simulated cell for the cell tests of this module (a start and stop costs 2-5 s):
+    the cell and its endpoint (controller host, sensor port), which each test's configuration
+    names (:func:`sim_cell`)."""
     from wristscan.daemon.simcell.cell import start_cell
+    from wristscan.drivers.sim.ur.controller import pick_free_loopback_host
+
+    endpoint = (pick_free_loopback_host(), _free_udp_port())
+    cell = start_cell(
+        _load(_sim_config(tmp_path_factory.mktemp("cell"), endpoint=endpoint)), **TRUE_POSES_ONLY
+    )
+    try:
+        yield cell, endpoint
+    finally:
+        cell.stop()
+
+
+@pytest.fixture
+def sim_cell(tmp_path: Path, shared_cell: tuple[Any, tuple[str, int]]) -> Any:
+    """``start(**kw)``: the module's cell as a test finds it fresh (no protective stop, the arm
+    still and jogged to the ball) and a configuration of the test's own naming it (``kw`` as
+    :func:`_sim_config`'s); returns ``(cell, path)``."""
     from wristscan.daemon.simcell.scenarios import jog_to_ball
 
+    cell, endpoint = shared_cell
+
     def start(**kw: Any) -> tuple[Any, Path]:
-        path = _sim_config(tmp_path, **kw)
-        cell = start_cell(_load(path), **TRUE_POSES_ONLY)
-        cells.append(cell)
+        path = _sim_config(tmp_path, endpoint=endpoint, **kw)
+        cell.controller.clear_protective_stop()
+        deadline = time.monotonic() + 30.0
+        while cell.controller.state()["moving"]:
+            assert time.monotonic() < deadline, "the shared cell's arm does not stand still"
+            time.sleep(0.02)
         jog_to_ball(cell)
         return cell, path
 
-    cells: list[Any] = []
-    yield start
-    for c in cells:
-        c.stop()
+    return start
 
 
 def _previous_calibration(path: Path) -> bytes:

@@ -281,12 +281,23 @@ def test_no_daemon_is_a_clear_error(tmp_path: Path) -> None:
 
 
 def _no_daemon(nobody: list[str], tmp_path: Path) -> None:
-    res = _run(_cli("record", *nobody, "-o", "scan.ply"), tmp_path)
+    # The two commands at once (each waits out its --timeout): independent of each other.
+    status = subprocess.Popen(
+        _cli("status", *nobody), cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True,
+    )  # fmt: skip
+    try:
+        res = _run(_cli("record", *nobody, "-o", "scan.ply"), tmp_path)
+        out, err = status.communicate(timeout=60)
+    finally:
+        if status.poll() is None:
+            status.kill()
+            status.wait()
     assert res.returncode == 1
     assert res.stderr.startswith("error: no wristscan daemon answered on wristscan/rectest")
     assert len(res.stderr.strip().splitlines()) == 1 and "Traceback" not in res.stderr
     assert os.listdir(tmp_path) == []
-    res = _run(_cli("status", *nobody), tmp_path)
+    res = subprocess.CompletedProcess(status.args, status.returncode, out, err)
     assert res.returncode == 1
     assert res.stderr.startswith("error: no wristscan daemon answered on wristscan/rectest")
     assert len(res.stderr.strip().splitlines()) == 1

@@ -22,7 +22,7 @@ import zenoh
 import zenoh.ext
 from rosbags.typesys import Stores, get_typestore
 from scipy.spatial.transform import Rotation
-from support import wait_for
+from support import publish_until, wait_for
 
 from wristscan.calib import kinematics, se3
 from wristscan.daemon.cloud import ros2msg, wsc1, wsp1
@@ -170,13 +170,11 @@ def test_rmw_zenoh_publication_reaches_a_plain_subscriber(endpoint: str) -> None
         t0 = 1_700_000_000_123_456_789
         t_pub = time.time_ns()
 
-        def arrived() -> bool:
-            if not got or not wsc:
-                publish(xyz, t0, t0 + 5_000_000, 10, "base", inten, None)
-                time.sleep(0.2)
-            return bool(got and wsc)
-
-        wait_for(arrived, "PointCloud2 never arrived on the rmw_zenoh key")
+        publish_until(
+            lambda: publish(xyz, t0, t0 + 5_000_000, 10, "base", inten, None),
+            lambda: bool(got and wsc),
+            "PointCloud2 never arrived on the rmw_zenoh key",
+        )
         sample = got[0]
         assert str(sample.key_expr) == key
         msg = get_typestore(Stores.ROS2_JAZZY).deserialize_cdr(
@@ -257,13 +255,11 @@ def test_bridge_mode_key_is_the_topic(endpoint: str) -> None:
         got: list[zenoh.Sample] = []
         sub = peer.declare_subscriber("scan/cloud", got.append)
 
-        def arrived() -> bool:
-            if not got:
-                ros.publish_cloud(xyz, 42, 43, 1, "part")
-                time.sleep(0.2)
-            return bool(got)
-
-        wait_for(arrived, "bridge-mode PointCloud2 never arrived")
+        publish_until(
+            lambda: ros.publish_cloud(xyz, 42, 43, 1, "part"),
+            lambda: bool(got),
+            "bridge-mode PointCloud2 never arrived",
+        )
         assert got[0].attachment is None
         back = ros2msg.cdr_to_cloud(got[0].payload.to_bytes())
         np.testing.assert_array_equal(back.xyz, xyz)

@@ -4,14 +4,13 @@ real zenoh sessions on loopback, the PointCloud2 read back with rosbags."""
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
 import numpy as np
 import pytest
 import zenoh
 from rosbags.typesys import Stores, get_typestore
-from support import wait_for
+from support import publish_until
 
 from wristscan.calib import align, se3
 from wristscan.daemon.cloud import ros2msg, wsc1
@@ -130,13 +129,11 @@ def test_frame_through_zenoh_and_the_ros2_tee(endpoint: str) -> None:
         publish = ros.tee(face.publish_cloud)
         t0 = 1_700_000_000_000_000_007
 
-        def arrived() -> bool:
-            if not (wsc and pc2):
-                publish(frame, t0, t0 + 5_000_000, 6, "base", None, None)
-                time.sleep(0.2)
-            return bool(wsc and pc2)
-
-        wait_for(arrived, "the frame never arrived as WSC1 and PointCloud2")
+        publish_until(
+            lambda: publish(frame, t0, t0 + 5_000_000, 6, "base", None, None),
+            lambda: bool(wsc and pc2),
+            "the frame never arrived as WSC1 and PointCloud2",
+        )
         payload = wsc[-1].payload.to_bytes()
         cloud = wsc1.decode(payload)
         assert (cloud.t_first_ns, cloud.n_profiles, cloud.frame_id) == (t0, 6, "base")
