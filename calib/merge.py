@@ -116,6 +116,46 @@ def voxel_mean(
     return tuple(out)
 
 
+_KEY_BITS = 21
+"""Bits per voxel index in :func:`voxel_mean_chunks`' keys (indices within +-2**20 voxels)."""
+
+
+def voxel_mean_chunks(chunks: Sequence[NDArray[np.floating]], voxel_m: float) -> FloatArray:
+    """:func:`voxel_mean` of the concatenated ``chunks`` ((n_i, 3) each, metres) on the origin's
+    grid, without concatenating them: each chunk is reduced to its voxels' sums and counts
+    first, then those are merged (5-6x faster for 25 M points in batches of 200 k, and no
+    float64 copy of the whole cloud). The same voxels in the same order; the means differ from
+    :func:`voxel_mean`'s at most by the order of the float64 sums."""
+    if voxel_m <= 0.0 or not chunks:
+        return voxel_mean(_stacked(chunks), voxel_m, grid="origin")[0]
+    keys, sums, counts = [], [], []
+    lim = 1 << (_KEY_BITS - 1)
+    for c in chunks:
+        if c.shape[0] == 0:
+            continue
+        ijk = np.floor(c.astype(np.float64) / voxel_m).astype(np.int64)
+        if int(np.abs(ijk).max()) >= lim:  # beyond the keys' reach: the plain way
+            return voxel_mean(_stacked(chunks), voxel_m, grid="origin")[0]
+        ijk += lim
+        key = (ijk[:, 0] << (2 * _KEY_BITS)) | (ijk[:, 1] << _KEY_BITS) | ijk[:, 2]
+        u, inv, n = np.unique(key, return_inverse=True, return_counts=True)
+        keys.append(u)
+        counts.append(n)
+        sums.append(np.stack([np.bincount(inv, c[:, j], u.size) for j in range(3)], axis=1))
+    if not keys:
+        return np.zeros((0, 3))
+    u, inv = np.unique(np.concatenate(keys), return_inverse=True)
+    s = np.concatenate(sums)
+    total = np.stack([np.bincount(inv, s[:, j], u.size) for j in range(3)], axis=1)
+    return np.asarray(total / np.bincount(inv, np.concatenate(counts), u.size)[:, None])
+
+
+def _stacked(chunks: Sequence[NDArray[np.floating]]) -> FloatArray:
+    if not chunks:
+        return np.zeros((0, 3))
+    return np.concatenate(chunks).astype(np.float64)
+
+
 def oriented_normals(xyz: FloatArray, origins: FloatArray, k: int = 12) -> FloatArray:
     """Unit normals of ``xyz`` (PCA of ``k`` neighbours), each turned towards the sensor origin
     that saw its point."""

@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wristscan.calib import kinematics, se3
-from wristscan.calib.merge import voxel_mean
+from wristscan.calib.merge import voxel_mean_chunks
 from wristscan.daemon.cloud.client import CloudClient
 from wristscan.daemon.config import Config, load_config
 from wristscan.daemon.simcell.cell import (
@@ -166,7 +166,7 @@ def run_demo(
             finally:
                 collector.stop()
             stats = client.query("stats")
-        return _write_result(out, collector, offsets, stats, truth, voxel_m)
+        return _write_result(out, collector, offsets, stats, voxel_m)
     finally:
         if daemon is not None:
             daemon.terminate()
@@ -184,27 +184,27 @@ def _write_result(
     collector: _Collector,
     offsets: list[float],
     stats: dict[str, Any],
-    truth: dict[str, Any],
     voxel_m: float,
 ) -> DemoResult:
     """Merge the clouds the passes received, write them to ``out`` (PLY) and measure them."""
     chunks = collector.chunks
     if not chunks:
         raise RuntimeError("the daemon published no points during the passes")
-    xyz = np.concatenate([c for _, c in chunks]).astype(np.float64)
+    clouds = [c for _, c in chunks]
     seqs = np.array(sorted(set(collector.seqs)))
     lost = int(seqs[-1] - seqs[0] + 1 - seqs.size) if seqs.size else 0
-    # The grid starts at the coordinate origin (the same voxels whatever the points).
-    merged = voxel_mean(xyz, voxel_m, grid="origin")[0].astype(np.float32)
+    # The grid starts at the coordinate origin (the same voxels whatever the points); batch by
+    # batch, not one float64 copy of tens of millions of points.
+    merged = voxel_mean_chunks(clouds, voxel_m).astype(np.float32)
     from wristscan.daemon.io.ply import write_ply
 
     write_ply(out, merged)
     preview, skipped = _write_preview(out.with_suffix(".png"), merged, len(offsets))
-    height, flat = _top_face(xyz, truth)
+    height, flat = _top_face(clouds)
     return DemoResult(
         out=out,
         passes=len(offsets),
-        points_received=int(xyz.shape[0]),
+        points_received=sum(int(c.shape[0]) for c in clouds),
         points_written=int(merged.shape[0]),
         batches=int(seqs.size),
         lost_batches=lost,
@@ -290,8 +290,19 @@ def _scan_passes(
     return offsets
 
 
-def _top_face(xyz: NDArray[np.float64], truth: dict[str, Any]) -> tuple[float, float]:
-    """Height above the table top and RMS flatness of the part's top face (part frame)."""
+def _top_face(clouds: list[NDArray[np.float32]]) -> tuple[float, float]:
+    """Height above the table top and RMS flatness of the part's top face (part frame), from
+    the batches' points."""
+    pts = np.concatenate([c[_on_top_face(c)] for c in clouds]).astype(np.float64)
+    if pts.shape[0] < 100:
+        return float("nan"), float("nan")
+    centred = pts - pts.mean(axis=0)
+    normal = np.linalg.svd(centred, full_matrices=False)[2][2]
+    flat = float(np.sqrt(np.mean((centred @ normal) ** 2)))
+    return float(np.median(pts[:, 2])), flat
+
+
+def _on_top_face(xyz: NDArray[np.float32]) -> NDArray[np.bool_]:
     box_top = 0.07
     sel = (
         (np.abs(xyz[:, 2] - box_top) < 0.002)
@@ -299,11 +310,4 @@ def _top_face(xyz: NDArray[np.float64], truth: dict[str, Any]) -> tuple[float, f
         & (np.abs(xyz[:, 1] - 0.01) < 0.025)
     )
     # The boss stands on the top face: keep away from it.
-    sel &= np.hypot(xyz[:, 0] - 0.04, xyz[:, 1] - 0.01) > 0.015
-    pts = xyz[sel]
-    if pts.shape[0] < 100:
-        return float("nan"), float("nan")
-    centred = pts - pts.mean(axis=0)
-    normal = np.linalg.svd(centred, full_matrices=False)[2][2]
-    flat = float(np.sqrt(np.mean((centred @ normal) ** 2)))
-    return float(np.median(pts[:, 2])), flat
+    return sel & (np.hypot(xyz[:, 0] - 0.04, xyz[:, 1] - 0.01) > 0.015)
