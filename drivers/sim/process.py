@@ -36,9 +36,21 @@ class SimProcess:
         raise NotImplementedError
 
     def start(self, timeout_s: float = 30.0) -> Self:
+        """Spawn the process and wait until it listens (``RuntimeError`` if it does not)."""
+        return self.spawn().wait_ready(timeout_s)
+
+    def spawn(self) -> Self:
+        """Start the process without waiting for it (several start side by side: most of a
+        start is the child's imports); then :meth:`wait_ready`."""
         fn, args = self._target()
-        self._proc, parent = spawn_child(fn, args, self.process_name)
-        self._conn = parent
+        self._proc, self._conn = spawn_child(fn, args, self.process_name)
+        return self
+
+    def wait_ready(self, timeout_s: float = 30.0) -> Self:
+        """Wait until the spawned process listens; stopped and ``RuntimeError`` if it does not."""
+        parent = self._conn
+        if parent is None:
+            raise RuntimeError(f"{self.process_name} was not spawned")
         if not parent.poll(timeout_s):
             self.stop()
             raise RuntimeError(f"{self.process_name} did not start within {timeout_s:g} s")
@@ -50,7 +62,11 @@ class SimProcess:
             self.stop()
             raise RuntimeError(f"{self.process_name} failed: {payload}")
         self.endpoint = payload
+        self._on_ready()
         return self
+
+    def _on_ready(self) -> None:
+        """What a device takes from its ``ready`` answer beyond the endpoint."""
 
     def stop(self) -> None:
         if self._proc is None:

@@ -128,9 +128,10 @@ class SimulatedController(SimProcess):
         """Start the process and wait until it listens; a running controller stays as it is."""
         if self._proc is not None:
             return self
-        super().start(timeout_s)
+        return super().start(timeout_s)
+
+    def _on_ready(self) -> None:
         self.start_time_ns = int(self.endpoint["start_time_ns"])
-        return self
 
     @classmethod
     def on_free_loopback(
