@@ -272,6 +272,12 @@ class URStateStream(Robot):
         self._lost_if_e_series += _missing(dt, E_SERIES_PERIOD_S)
         self.counters.lost += _missing(dt, _CB3_PERIOD_S)
 
+    def _take_rows(self, rows: list[memoryview]) -> None:
+        """The rows gathered so far made into records in one call; ``rows`` emptied."""
+        if rows:
+            self._on_rows(rows[0] if len(rows) == 1 else b"".join(rows))
+            rows.clear()
+
     def _handle_rx_message(self, rx: _Rx, msg: bytes, rows: list[memoryview]) -> None:
         """One message of the child; its rows are appended to ``rows`` (turned into records
         by the caller, all of a pump at once: per call, not per row, costs most there)."""
@@ -285,9 +291,7 @@ class URStateStream(Robot):
                 return
             rows.append(body)
             return
-        if rows:  # what came before a state change is taken first, in order
-            self._on_rows(b"".join(rows))
-            rows.clear()
+        self._take_rows(rows)  # what came before a state change is taken first, in order
         if tag != TAG_OBJ:
             self.counters.malformed += 1
             self.raw_log.add(msg)
@@ -324,8 +328,7 @@ class URStateStream(Robot):
                             if not rx.readable(0.0):
                                 break
                     finally:
-                        if rows:
-                            self._on_rows(rows[0] if len(rows) == 1 else b"".join(rows))
+                        self._take_rows(rows)
             except (EOFError, OSError):
                 if supervise or rx.state not in ("down", "failed"):
                     self._rx_died("ended")
