@@ -107,13 +107,15 @@ def voxel_mean(
     dims = ijk.max(axis=0) + 1
     key = np.ravel_multi_index(ijk.T, tuple(int(d) for d in dims))
     _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
-    out = []
-    for a in (xyz, *extra):
-        s = np.zeros((counts.size, a.shape[1]))
-        for j in range(a.shape[1]):  # bincount per column: much faster than np.add.at
-            s[:, j] = np.bincount(inverse, weights=a[:, j], minlength=counts.size)
-        out.append(s / counts[:, None])
-    return tuple(out)
+    return tuple(_sums_by(inverse, a, counts.size) / counts[:, None] for a in (xyz, *extra))
+
+
+def _sums_by(inverse: NDArray[np.intp], a: NDArray[np.floating], n: int) -> FloatArray:
+    """The (n, k) float64 sums of the rows of ``a`` (N, k) by group ``inverse`` (N,)."""
+    s = np.zeros((n, a.shape[1]))
+    for j in range(a.shape[1]):  # bincount per column: much faster than np.add.at
+        s[:, j] = np.bincount(inverse, weights=a[:, j], minlength=n)
+    return s
 
 
 _KEY_BITS = 21
@@ -141,12 +143,11 @@ def voxel_mean_chunks(chunks: Sequence[NDArray[np.floating]], voxel_m: float) ->
         u, inv, n = np.unique(key, return_inverse=True, return_counts=True)
         keys.append(u)
         counts.append(n)
-        sums.append(np.stack([np.bincount(inv, c[:, j], u.size) for j in range(3)], axis=1))
+        sums.append(_sums_by(inv, c, u.size))
     if not keys:
         return np.zeros((0, 3))
     u, inv = np.unique(np.concatenate(keys), return_inverse=True)
-    s = np.concatenate(sums)
-    total = np.stack([np.bincount(inv, s[:, j], u.size) for j in range(3)], axis=1)
+    total = _sums_by(inv, np.concatenate(sums), u.size)
     return np.asarray(total / np.bincount(inv, np.concatenate(counts), u.size)[:, None])
 
 
